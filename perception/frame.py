@@ -1,0 +1,83 @@
+"""RGB-D frames, camera models and detections: the data every stage of the pipeline consumes."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in pixels."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def matrix(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Colour camera intrinsics and image size, depth units, and (optionally) an unregistered depth sensor.
+
+    ``depth_scale`` is raw depth units per metre (TUM: 5000, 7-Scenes: 1000).
+    ``depth_intrinsics`` is None when depth is registered to colour; otherwise the depth camera's
+    intrinsics, and ``depth_to_color`` the 4x4 transform from the depth to the colour camera frame.
+    """
+
+    color: Intrinsics
+    width: int
+    height: int
+    depth_scale: float = 5000.0
+    depth_intrinsics: Intrinsics | None = None
+    depth_to_color: np.ndarray | None = None
+
+    @property
+    def registered(self) -> bool:
+        return self.depth_intrinsics is None
+
+    @property
+    def depth(self) -> Intrinsics:
+        """Intrinsics of the depth image (the colour ones when registered)."""
+        return self.depth_intrinsics if self.depth_intrinsics is not None else self.color
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One detected object: COCO label, confidence and box [x1, y1, x2, y2] in colour pixels."""
+
+    label: str
+    score: float
+    box: tuple[float, float, float, float]
+
+
+@dataclass
+class Frame:
+    """One RGB-D frame as the service receives it.
+
+    ``rgb`` is HxWx3 uint8 in RGB order; ``depth`` is uint16 in raw units (0 = invalid);
+    ``odometry`` is an optional 4x4 camera-to-world pose from an external odometry source;
+    ``detections`` is None when the frame carries none (the detector then runs), else a list.
+    """
+
+    timestamp: float
+    seq: int
+    frame_id: str
+    camera: CameraModel
+    rgb: np.ndarray
+    depth: np.ndarray
+    odometry: np.ndarray | None = None
+    detections: list[Detection] | None = None
+    index: int = -1
+    extra: dict = field(default_factory=dict)
+
+    def depth_m(self) -> np.ndarray:
+        """Depth in metres as float32, NaN where invalid (0 or 65535)."""
+        d = self.depth.astype(np.float32) / np.float32(self.camera.depth_scale)
+        invalid = (self.depth == 0) | (self.depth == 65535)
+        d[invalid] = np.nan
+        return d

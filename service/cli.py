@@ -1,0 +1,210 @@
+"""The ``objslam`` command line: serve, replay, status, run, eval, config, bench."""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+
+from service.config import ConfigError, Settings, dump_defaults, load_settings
+from service.sources import DatasetError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="objslam: semantic SLAM backend over zenoh (object association, iSAM2, RL loop closure).")
+console = Console()
+err_console = Console(stderr=True)
+
+ConfigOpt = Annotated[Path | None, typer.Option("--config", help="YAML configuration file")]
+RobotOpt = Annotated[str | None, typer.Option("--robot", help="robot name: keys are <key_prefix>/<robot>/...")]
+ConnectOpt = Annotated[list[str] | None, typer.Option("--connect", help="zenoh endpoint to connect to")]
+ListenOpt = Annotated[list[str] | None, typer.Option("--listen", help="zenoh endpoint to listen on")]
+ModeOpt = Annotated[str | None, typer.Option("--mode", help="zenoh mode: peer, client or router")]
+
+
+class LcSource(str, Enum):
+    off = "off"
+    appearance = "appearance"
+    policy = "policy"
+    both = "both"
+
+
+class QueryKind(str, Enum):
+    status = "status"
+    objects = "objects"
+    trajectory = "trajectory"
+    loops = "loops"
+
+
+class UserError(Exception):
+    """An error to print as one line before exiting non-zero."""
+
+
+def _settings(config: Path | None, robot: str | None = None, connect: list[str] | None = None,
+              listen: list[str] | None = None, mode: str | None = None, state_dir: Path | None = None) -> Settings:
+    overrides: dict[str, Any] = {}
+    zenoh_over: dict[str, Any] = {}
+    if robot:
+        overrides["robot"] = robot
+    if state_dir:
+        overrides["state_dir"] = state_dir
+    if connect:
+        zenoh_over["connect"] = connect
+    if listen:
+        zenoh_over["listen"] = listen
+    if mode:
+        zenoh_over["mode"] = mode
+    if zenoh_over:
+        overrides["zenoh"] = zenoh_over
+    return load_settings(config, overrides)
+
+
+def _camera_overrides(**values: float | None) -> dict[str, float]:
+    return {k: v for k, v in values.items() if v is not None}
+
+
+def _check_lc(lc_source: LcSource, lc_policy: Path | None) -> None:
+    if lc_source is not LcSource.off or lc_policy is not None:
+        raise UserError(f"loop-closure source {lc_source.value!r} is not available in this version; use --lc-source off")
+
+
+@app.command()
+def serve(config: ConfigOpt = None, robot: RobotOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
+          mode: ModeOpt = None,
+          state_dir: Annotated[Path | None, typer.Option("--state-dir", help="outputs written here on shutdown")] = None,
+          lc_source: Annotated[LcSource, typer.Option("--lc-source")] = LcSource.off,
+          lc_policy: Annotated[Path | None, typer.Option("--lc-policy")] = None) -> None:
+    """Run the long-lived mapping service (until SIGINT / SIGTERM)."""
+    from service.run import serve as serve_forever
+
+    _check_lc(lc_source, lc_policy)
+    serve_forever(_settings(config, robot, connect, listen, mode, state_dir))
+
+
+@app.command()
+def replay(dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?seed=N&frames=N")],
+           rate: Annotated[float | None, typer.Option("--rate", help="frames per second (default: timestamps)")] = None,
+           max_rate: Annotated[bool, typer.Option("--max-rate", help="publish as fast as possible")] = False,
+           max_frames: Annotated[int | None, typer.Option("--max-frames")] = None,
+           robot: RobotOpt = None, connect: ConnectOpt = None, mode: ModeOpt = None, config: ConfigOpt = None,
+           depth_scale: Annotated[float | None, typer.Option("--depth-scale")] = None,
+           fx: Annotated[float | None, typer.Option("--fx")] = None,
+           fy: Annotated[float | None, typer.Option("--fy")] = None,
+           cx: Annotated[float | None, typer.Option("--cx")] = None,
+           cy: Annotated[float | None, typer.Option("--cy")] = None) -> None:
+    """Publish a dataset's frames to a running service (protocol v1)."""
+    from service.replay import Replayer, frame_publisher
+    from service.sources import open_dataset
+    from service.zenoh_session import open_session
+
+    if rate is not None and max_rate:
+        raise UserError("--rate and --max-rate are exclusive")
+    settings = _settings(config, robot, connect, None, mode)
+    data = open_dataset(dataset, _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy))
+    session = open_session(settings.zenoh, "client")
+    try:
+        pub = frame_publisher(session, f"{settings.key_prefix}/rgbd")
+        result = Replayer(data, pub.put, rate_hz=rate, max_rate=max_rate, max_frames=max_frames).run()
+        pub.undeclare()
+    finally:
+        session.close()
+    console.print(f"published {result.frames} frames in {result.seconds:.1f} s ({result.rate_hz:.1f} frames/s)")
+
+
+@app.command()
+def status(what: Annotated[QueryKind, typer.Argument()] = QueryKind.status,
+           as_json: Annotated[bool, typer.Option("--json", help="print the JSON reply")] = False,
+           robot: RobotOpt = None, connect: ConnectOpt = None, mode: ModeOpt = None, config: ConfigOpt = None) -> None:
+    """Query a running service (status, objects, trajectory or loops)."""
+    from service.client import query, render_reply
+
+    settings = _settings(config, robot, connect, None, mode)
+    reply = query(settings, what.value)
+    if as_json:
+        print(json.dumps(reply, indent=1))
+    else:
+        render_reply(console, what.value, reply)
+
+
+@app.command()
+def run(dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?seed=N&frames=N")],
+        out: Annotated[Path, typer.Option("--out", help="output directory")],
+        config: ConfigOpt = None,
+        max_frames: Annotated[int | None, typer.Option("--max-frames")] = None,
+        lc_source: Annotated[LcSource, typer.Option("--lc-source")] = LcSource.off,
+        lc_policy: Annotated[Path | None, typer.Option("--lc-policy")] = None,
+        depth_scale: Annotated[float | None, typer.Option("--depth-scale")] = None,
+        fx: Annotated[float | None, typer.Option("--fx")] = None,
+        fy: Annotated[float | None, typer.Option("--fy")] = None,
+        cx: Annotated[float | None, typer.Option("--cx")] = None,
+        cy: Annotated[float | None, typer.Option("--cy")] = None) -> None:
+    """Run the whole pipeline on one dataset over an embedded zenoh session; write the outputs."""
+    from service.run import run_dataset
+    from service.summary import print_summary
+
+    _check_lc(lc_source, lc_policy)
+    summary = run_dataset(dataset, out, _settings(config), max_frames,
+                          _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy))
+    print_summary(console, summary, out)
+
+
+@app.command("eval")
+def evaluate_cmd(run_dir: Annotated[Path, typer.Argument(help="a run output directory")],
+                 gt: Annotated[str, typer.Option("--gt", help="the dataset with ground truth")]) -> None:
+    """ATE / RPE of a run's trajectory.tum against a dataset's ground truth; writes report.md."""
+    from service.evaluate import evaluate_run
+
+    console.print(evaluate_run(run_dir, gt))
+
+
+@app.command("config")
+def config_cmd(dump: Annotated[bool, typer.Option("--dump", help="print the default configuration")] = False,
+               config: ConfigOpt = None) -> None:
+    """Print the default configuration (--dump) or the effective one."""
+    import yaml
+
+    if dump:
+        print(dump_defaults(), end="")
+    else:
+        print(yaml.safe_dump(load_settings(config).model_dump(mode="json"), sort_keys=False), end="")
+
+
+bench_app = typer.Typer(help="Benchmarks: each prints a table and appends it to docs/benchmarks.md.")
+app.add_typer(bench_app, name="bench")
+
+
+@bench_app.command("throughput")
+def bench_throughput(frames: Annotated[int, typer.Option("--frames")] = 300,
+                     dataset: Annotated[str, typer.Option("--dataset")] = "synthetic:room?seed=0",
+                     write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None
+                     ) -> None:
+    """Replay-to-graph throughput at max rate over zenoh (frames pre-encoded, service in a subprocess)."""
+    from service.bench.throughput import run_throughput
+
+    run_throughput(console, dataset, frames, write)
+
+
+def main() -> None:
+    """Console entry point: domain errors become one line on stderr and exit code 1."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        app(standalone_mode=False)
+    except (UserError, ConfigError, DatasetError, ConnectionError, TimeoutError, RuntimeError, OSError) as exc:
+        err_console.print(f"objslam: error: {exc}", highlight=False)
+        sys.exit(1)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except (typer.Abort, KeyboardInterrupt):
+        sys.exit(130)
+    except Exception as exc:  # click usage errors
+        import click
+
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            sys.exit(exc.exit_code)
+        raise

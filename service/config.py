@@ -1,0 +1,124 @@
+"""Typed configuration: defaults < YAML file (``--config``) < ``OBJSLAM_*`` environment < command-line flags.
+
+Nested fields use ``__`` in environment variables, e.g. ``OBJSLAM_ZENOH__MODE=client``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, Field, ValidationError
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
+
+
+class ConfigError(Exception):
+    """The configuration file, environment or flags are invalid."""
+
+
+class ZenohSettings(BaseModel):
+    """Zenoh session: mode, endpoints and the key prefix (keys are ``<key_prefix>/<robot>/...``)."""
+
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"], description="serve listens here")
+    connect: list[str] = Field(
+        default_factory=list, description="endpoints to connect to; clients default to the listen endpoints"
+    )
+    multicast_scouting: bool = Field(False, description="multicast discovery (off: loopback-only deployments)")
+    key_prefix: str = "objslam"
+    query_timeout_s: float = 5.0
+
+
+class IngestSettings(BaseModel):
+    """The bounded ingest queue between zenoh callbacks and the worker thread."""
+
+    queue_size: int = Field(64, ge=1, description="frames held before the oldest is dropped")
+    max_payload_bytes: int = Field(64 * 1024 * 1024, ge=1024)
+    max_image_pixels: int = Field(4096 * 4096, ge=1)
+
+
+class KeyframeSettings(BaseModel):
+    """A frame becomes a keyframe when it moved enough since the last one, or too many frames passed."""
+
+    translation_m: float = Field(0.05, gt=0)
+    rotation_deg: float = Field(5.0, gt=0)
+    max_interval: int = Field(10, ge=1, description="frames between keyframes at most")
+
+
+class GraphSettings(BaseModel):
+    """iSAM2 pose graph noise models and solver parameters."""
+
+    odometry_sigma_m: float = Field(0.02, gt=0, description="odometry between-factor translation sigma")
+    odometry_sigma_deg: float = Field(1.0, gt=0, description="odometry between-factor rotation sigma")
+    prior_sigma_m: float = Field(1e-4, gt=0)
+    prior_sigma_deg: float = Field(0.01, gt=0)
+    relinearize_threshold: float = Field(0.01, gt=0)
+    relinearize_skip: int = Field(1, ge=1)
+
+
+class CameraDefaults(BaseModel):
+    """Camera used when a dataset has no camera.json (TUM defaults)."""
+
+    fx: float = 525.0
+    fy: float = 525.0
+    cx: float = 319.5
+    cy: float = 239.5
+    depth_scale: float = 5000.0
+
+
+class Settings(BaseSettings):
+    """All of objslam's configuration."""
+
+    model_config = SettingsConfigDict(env_prefix="OBJSLAM_", env_nested_delimiter="__", extra="forbid")
+
+    robot: str = Field("robot1", pattern=r"^[A-Za-z0-9_\-]+$")
+    state_dir: Path | None = None
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    ingest: IngestSettings = Field(default_factory=IngestSettings)
+    keyframes: KeyframeSettings = Field(default_factory=KeyframeSettings)
+    graph: GraphSettings = Field(default_factory=GraphSettings)
+    camera: CameraDefaults = Field(default_factory=CameraDefaults)
+
+    @property
+    def key_prefix(self) -> str:
+        """Keys of this robot: ``<key_prefix>/<robot>``."""
+        return f"{self.zenoh.key_prefix}/{self.robot}"
+
+
+def _settings_class(config_file: Path | None) -> type[Settings]:
+    if config_file is None:
+        return Settings
+
+    class FileSettings(Settings):
+        @classmethod
+        def settings_customise_sources(
+            cls,
+            settings_cls: type[BaseSettings],
+            init_settings: PydanticBaseSettingsSource,
+            env_settings: PydanticBaseSettingsSource,
+            dotenv_settings: PydanticBaseSettingsSource,
+            file_secret_settings: PydanticBaseSettingsSource,
+        ) -> tuple[PydanticBaseSettingsSource, ...]:
+            return (init_settings, env_settings, YamlConfigSettingsSource(settings_cls, yaml_file=config_file))
+
+    return FileSettings
+
+
+def load_settings(config_file: Path | None = None, overrides: dict[str, Any] | None = None) -> Settings:
+    """Settings from defaults, an optional YAML file, the environment and ``overrides`` (highest)."""
+    if config_file is not None and not Path(config_file).is_file():
+        raise ConfigError(f"config file not found: {config_file}")
+    try:
+        return _settings_class(config_file)(**(overrides or {}))
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise ConfigError(f"invalid configuration at {where}: {first['msg']}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config file {config_file} is not valid YAML: {exc}") from None
+
+
+def dump_defaults() -> str:
+    """The default configuration as YAML (``objslam config --dump``)."""
+    return yaml.safe_dump(Settings.model_construct().model_dump(mode="json"), sort_keys=False)

@@ -1,0 +1,58 @@
+"""The bounded ingest queue: zenoh callbacks enqueue raw payloads, the worker thread takes them."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+
+
+@dataclass
+class Ingested:
+    """A raw message and the monotonic time it arrived."""
+
+    payload: bytes
+    received: float
+
+
+class IngestQueue:
+    """Thread-safe FIFO of at most ``capacity`` items; a full queue drops its oldest item.
+
+    ``put`` never blocks, so it is safe on zenoh's callback thread.
+    """
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self._items: deque[Ingested] = deque()
+        self._cond = threading.Condition()
+        self.dropped = 0
+
+    def put(self, payload: bytes) -> bool:
+        """Enqueue; returns True when the oldest item had to be dropped to make room."""
+        with self._cond:
+            dropped = len(self._items) >= self.capacity
+            if dropped:
+                self._items.popleft()
+                self.dropped += 1
+            self._items.append(Ingested(payload, time.monotonic()))
+            self._cond.notify_all()
+            return dropped
+
+    def get(self, timeout: float) -> Ingested | None:
+        """The oldest item, waiting up to ``timeout`` seconds; None when nothing arrived."""
+        with self._cond:
+            if not self._items and not self._cond.wait_for(lambda: bool(self._items), timeout):
+                return None
+            item = self._items.popleft()
+            self._cond.notify_all()
+            return item
+
+    def wait_for_space(self, timeout: float) -> bool:
+        """Block until the queue is below capacity (embedded replay's back-pressure)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: len(self._items) < self.capacity, timeout)
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._items)

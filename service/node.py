@@ -1,0 +1,173 @@
+"""The service node: zenoh subscriber and queryables wired to the ingest queue and the pipeline.
+
+Zenoh callbacks only enqueue bytes or serialise a reply; decoding and graph work run on one worker thread.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from graph.geometry import pose_to_tum
+from graph.pose_graph import SolverError
+from service.config import Settings
+from service.ingest import IngestQueue
+from service.pipeline import Pipeline
+from service.protocol import VERSION, FrameRejected, Limits, decode_frame
+from service.sources.base import Trajectory
+from service.stats import ServiceStats
+
+log = logging.getLogger(__name__)
+
+
+class ServiceNode:
+    """One robot's mapping service on a zenoh session, under ``<key_prefix>/<robot>/``."""
+
+    def __init__(self, settings: Settings, session: zenoh.Session):
+        self.settings = settings
+        self.session = session
+        self.prefix = settings.key_prefix
+        self.queue = IngestQueue(settings.ingest.queue_size)
+        self.stats = ServiceStats()
+        self.pipeline = Pipeline(settings)
+        self.limits = Limits(settings.ingest.max_payload_bytes, settings.ingest.max_image_pixels)
+        self._lock = threading.Lock()  # guards the pipeline between the worker and queryables
+        self._stop = threading.Event()
+        self._busy = False
+        self._started = time.time()
+        self._entities: list[Any] = []
+        self._worker = threading.Thread(target=self._work, name="objslam-worker", daemon=True)
+
+    # ------------------------------------------------------------ lifecycle
+
+    def start(self) -> None:
+        """Declare the subscriber, queryables and events publisher, and start the worker."""
+        s, p = self.session, self.prefix
+        self._entities.append(s.declare_subscriber(f"{p}/rgbd", self._on_frame))
+        for name, handler in (("status", self.status), ("trajectory", self.trajectory_reply),
+                              ("objects", self.objects_reply), ("loops", self.loops_reply)):
+            self._entities.append(s.declare_queryable(f"{p}/{name}", self._replier(name, handler)))
+        self.events = s.declare_publisher(f"{p}/events")
+        self._entities.append(self.events)
+        self._worker.start()
+        log.info("serving %s (protocol v%d)", p, VERSION)
+
+    def stop(self) -> None:
+        """Stop the worker after the current frame and undeclare zenoh entities."""
+        self._stop.set()
+        if self._worker.is_alive():
+            self._worker.join(timeout=10)
+        for entity in reversed(self._entities):
+            try:
+                entity.undeclare()
+            except zenoh.ZError as exc:  # already closed session
+                log.debug("undeclare failed: %s", exc)
+        self._entities.clear()
+
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait until the queue is empty and no frame is in progress."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if len(self.queue) == 0 and not self._busy:
+                return True
+            time.sleep(0.005)
+        return False
+
+    # ------------------------------------------------------------ ingest
+
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        self.stats.count_received()
+        self.submit(sample.payload.to_bytes())
+
+    def submit(self, payload: bytes) -> None:
+        """Enqueue a raw message (what the subscriber callback does); never blocks."""
+        if self.queue.put(payload):
+            log.debug("ingest queue full: dropped the oldest frame")
+
+    def _work(self) -> None:
+        while not self._stop.is_set():
+            item = self.queue.get(timeout=0.1)
+            if item is None:
+                continue
+            self._busy = True
+            try:
+                self._process(item.payload, item.received)
+            except Exception:  # the worker must survive anything a frame can trigger
+                log.exception("unexpected error while processing a frame")
+                self.stats.count_error("internal")
+            finally:
+                self._busy = False
+
+    def _process(self, payload: bytes, received: float) -> None:
+        t0 = time.monotonic()
+        try:
+            frame = decode_frame(payload, self.limits)
+            t1 = time.monotonic()
+            self.stats.time("decode", t1 - t0)
+            with self._lock:
+                record = self.pipeline.process(frame)
+            t2 = time.monotonic()
+        except FrameRejected as exc:
+            self.stats.count_rejected(exc.reason.value)
+            log.debug("rejected frame: %s", exc)
+            return
+        except SolverError:
+            self.stats.count_error("solver")
+            return
+        self.stats.time("graph", t2 - t1)
+        self.stats.time("ingest_to_graph", t2 - received)
+        self.stats.count_processed(record.is_keyframe)
+
+    # ------------------------------------------------------------ queries
+
+    def _replier(self, name: str, handler):
+        def reply(query: zenoh.Query) -> None:
+            try:
+                body = json.dumps(handler())
+                query.reply(f"{self.prefix}/{name}", body.encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
+            except Exception as exc:  # a failing query must not take the service down
+                log.exception("query %s failed", name)
+                query.reply_err(json.dumps({"error": str(exc)}).encode())
+
+        return reply
+
+    def status(self) -> dict[str, Any]:
+        """The ``status`` reply (schema in docs/protocol.md)."""
+        snap = self.stats.snapshot()
+        with self._lock:
+            graph = self.pipeline.graph
+            snap.update(keyframes=graph.num_keyframes, poses=graph.num_keyframes, factors=graph.num_factors)
+        snap.update(
+            robot=self.settings.robot,
+            protocol_version=VERSION,
+            frames_dropped=self.queue.dropped,
+            queue_depth=len(self.queue),
+            queue_capacity=self.queue.capacity,
+            landmarks=0,
+            objects=0,
+            loop_closures={"accepted": 0, "rejected": 0},
+            uptime_s=round(time.time() - self._started, 3),
+        )
+        return snap
+
+    def trajectory_reply(self) -> dict[str, Any]:
+        """Optimised poses of every processed frame: ``{"frame": "world", "poses": [[t, tx..qw], ...]}``."""
+        traj, _ = self.trajectories()
+        rows = [[float(t), *map(float, pose_to_tum(T))] for t, T in zip(traj.timestamps, traj.poses)]
+        return {"robot": self.settings.robot, "format": "t tx ty tz qx qy qz qw", "poses": rows}
+
+    def trajectories(self) -> tuple[Trajectory, Trajectory]:
+        """(optimised, odometry) trajectories of every processed frame, taken consistently."""
+        with self._lock:
+            return self.pipeline.trajectory(), self.pipeline.odometry_trajectory()
+
+    def objects_reply(self) -> dict[str, Any]:
+        return {"robot": self.settings.robot, "objects": []}
+
+    def loops_reply(self) -> dict[str, Any]:
+        return {"robot": self.settings.robot, "loops": []}

@@ -1,0 +1,93 @@
+"""Writing the SPEC section 4 outputs: trajectories, objects, loops, report and the top-down map."""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from graph.geometry import pose_to_tum
+from graph.metrics import TrajectoryError, match_timestamps, trajectory_error
+from service.sources.base import Trajectory
+
+
+def atomic_write(path: Path, data: str | bytes) -> None:
+    """Write via a temporary file and rename, so readers never see a partial file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
+    with os.fdopen(fd, "wb") as fh:
+        fh.write(data.encode() if isinstance(data, str) else data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def tum_text(traj: Trajectory) -> str:
+    """TUM trajectory text (``t tx ty tz qx qy qz qw``), readable by evo."""
+    lines = ["# timestamp tx ty tz qx qy qz qw"]
+    for t, T in zip(traj.timestamps, traj.poses):
+        lines.append(" ".join([f"{t:.6f}"] + [f"{v:.9f}" for v in pose_to_tum(T)]))
+    return "\n".join(lines) + "\n"
+
+
+def evaluate(traj: Trajectory, gt: Trajectory | None) -> TrajectoryError | None:
+    """ATE / RPE of ``traj`` against ground truth matched by timestamp, or None without ground truth."""
+    if gt is None or len(traj) < 3:
+        return None
+    i_est, i_ref = match_timestamps(traj.timestamps, gt.timestamps)
+    if len(i_est) < 3:
+        return None
+    return trajectory_error(traj.poses[i_est], gt.poses[i_ref])
+
+
+def write_outputs(out: Path, trajectory: Trajectory, odometry: Trajectory, summary: dict[str, Any],
+                  gt: Trajectory | None, objects: list | None = None, loops: list | None = None) -> dict[str, Any]:
+    """Write every output file into ``out``; returns the summary with the metrics added."""
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(out / "trajectory.tum", tum_text(trajectory))
+    atomic_write(out / "odometry.tum", tum_text(odometry))
+    atomic_write(out / "objects.json", json.dumps(objects or [], indent=1))
+    atomic_write(out / "loops.json", json.dumps(loops or [], indent=1))
+    metrics = {name: evaluate(t, gt) for name, t in (("trajectory", trajectory), ("odometry", odometry))}
+    summary = {**summary, "ate": {k: _error_dict(v) for k, v in metrics.items() if v is not None}}
+    atomic_write(out / "report.md", report_markdown(summary))
+    from service.mapplot import plot_map  # matplotlib is slow to import; only needed here
+
+    plot_map(out / "map.png", trajectory, odometry, gt, metrics["trajectory"])
+    return summary
+
+
+def _error_dict(err: TrajectoryError) -> dict[str, float]:
+    return {"pairs": err.pairs, "ate_rmse_m": err.ate_rmse_m, "ate_mean_m": err.ate_mean_m,
+            "ate_median_m": err.ate_median_m, "ate_max_m": err.ate_max_m,
+            "rpe_trans_rmse_m": err.rpe_trans_rmse_m, "rpe_rot_rmse_deg": err.rpe_rot_rmse_deg}
+
+
+def report_markdown(summary: dict[str, Any]) -> str:
+    """``report.md``: the run summary and, with ground truth, ATE / RPE tables."""
+    lines = [f"# objslam report: {summary.get('dataset', '')}", "", "| quantity | value |", "|---|---|"]
+    for key, value in summary.items():
+        if key in ("ate", "dataset", "latency"):
+            continue
+        lines.append(f"| {key} | {json.dumps(value) if isinstance(value, (dict, list)) else value} |")
+    ate = summary.get("ate", {})
+    if ate:
+        lines += ["", "## Trajectory error (SE(3) Umeyama alignment, matched by timestamp)", "",
+                  "| trajectory | pairs | ATE RMSE (m) | ATE median (m) | ATE max (m) | RPE trans RMSE (m/frame) "
+                  "| RPE rot RMSE (deg/frame) |", "|---|---|---|---|---|---|---|"]
+        for name, e in ate.items():
+            lines.append(f"| {name} | {e['pairs']} | {e['ate_rmse_m']:.4f} | {e['ate_median_m']:.4f} | "
+                         f"{e['ate_max_m']:.4f} | {e['rpe_trans_rmse_m']:.5f} | {e['rpe_rot_rmse_deg']:.4f} |")
+    else:
+        lines += ["", "No ground truth: no trajectory error."]
+    latency = summary.get("latency")
+    if latency:
+        lines += ["", "## Stage latency (ms)", "", "| stage | n | p50 | p95 | p99 | max |", "|---|---|---|---|---|---|"]
+        for stage, s in latency.items():
+            if s.get("n"):
+                lines.append(f"| {stage} | {s['n']} | {s['p50_ms']} | {s['p95_ms']} | {s['p99_ms']} | {s['max_ms']} |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,96 @@
+"""``objslam run`` and ``objslam serve``: the service on an embedded or networked zenoh session."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+import time
+from collections import Counter
+from pathlib import Path
+from typing import Any
+
+from service.config import Settings
+from service.node import ServiceNode
+from service.outputs import write_outputs
+from service.replay import Replayer, frame_publisher
+from service.sources import open_dataset
+from service.zenoh_session import open_session
+
+log = logging.getLogger(__name__)
+
+
+def run_dataset(spec: str, out: Path, settings: Settings, max_frames: int | None = None,
+                camera_overrides: dict[str, float] | None = None, progress: bool = True) -> dict[str, Any]:
+    """Replay ``spec`` into a service on one embedded zenoh session and write the outputs into ``out``.
+
+    The same ServiceNode as ``serve`` receives the frames through a zenoh subscriber; the replay waits for
+    room in the ingest queue instead of letting frames drop.
+    """
+    dataset = open_dataset(spec, camera_overrides)
+    if not dataset.has_odometry:
+        raise RuntimeError(f"{spec} has no odometry.txt and the RGB-D odometry front end is not available yet")
+    session = open_session(settings.zenoh, "server", embedded=True)
+    node = ServiceNode(settings, session)
+    try:
+        node.start()
+        pub = frame_publisher(session, f"{node.prefix}/rgbd")
+        replayer = Replayer(dataset, pub.put, max_rate=True, max_frames=max_frames,
+                            before_publish=lambda: node.queue.wait_for_space(60.0), progress=progress)
+        started = time.monotonic()
+        result = replayer.run()
+        node.wait_idle(timeout=120.0)
+        elapsed = time.monotonic() - started
+        pub.undeclare()
+        status = node.status()
+        summary = _summary(dataset.name, result.frames, elapsed, status)
+        traj, odom = node.trajectories()
+        objects = node.objects_reply()["objects"]
+        return write_outputs(out, traj, odom, summary, dataset.ground_truth, objects, node.loops_reply()["loops"])
+    finally:
+        node.stop()
+        session.close()
+
+
+def _summary(name: str, frames: int, elapsed: float, status: dict[str, Any]) -> dict[str, Any]:
+    return {
+        "dataset": name,
+        "frames": frames,
+        "frames_processed": status["frames_processed"],
+        "frames_rejected": status["frames_rejected"],
+        "frames_dropped": status["frames_dropped"],
+        "keyframes": status["keyframes"],
+        "poses": status["poses"],
+        "objects_by_class": dict(Counter()),
+        "loop_closures": status["loop_closures"]["accepted"],
+        "seconds": round(elapsed, 3),
+        "throughput_fps": round(status["frames_processed"] / elapsed, 2) if elapsed > 0 else 0.0,
+        "latency": status["latency"],
+    }
+
+
+def serve(settings: Settings, stop: threading.Event | None = None) -> None:
+    """Run the service until SIGINT / SIGTERM (or ``stop``); writes outputs to the state dir on shutdown."""
+    stop = stop or threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    session = open_session(settings.zenoh, "server")
+    node = ServiceNode(settings, session)
+    node.start()
+    log.info("objslam serve: robot %s on %s, listening %s", settings.robot, node.prefix, settings.zenoh.listen)
+    try:
+        while not stop.wait(0.5):
+            pass
+    finally:
+        node.stop()
+        if settings.state_dir is not None:
+            _write_state_outputs(node, Path(settings.state_dir))
+        session.close()
+        log.info("objslam serve: stopped")
+
+
+def _write_state_outputs(node: ServiceNode, out: Path) -> None:
+    traj, odom = node.trajectories()
+    status = node.status()
+    write_outputs(out, traj, odom, {"dataset": f"serve {node.prefix}", **_summary(
+        node.prefix, status["frames_received"], status["uptime_s"], status)}, None)

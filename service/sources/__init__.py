@@ -1,0 +1,20 @@
+"""Replay sources: TUM-format directories and the synthetic scene simulator."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from service.sources.base import Dataset, DatasetError, ObjectTruth, Trajectory
+
+__all__ = ["Dataset", "DatasetError", "ObjectTruth", "Trajectory", "open_dataset"]
+
+
+def open_dataset(spec: str, camera_overrides: dict[str, float] | None = None) -> Dataset:
+    """A dataset from ``synthetic:NAME?...`` or a directory path."""
+    if spec.startswith("synthetic:"):
+        from service.sources.synthetic import parse_synthetic_spec
+
+        return parse_synthetic_spec(spec)
+    from service.sources.tum import TumDataset
+
+    return TumDataset(Path(spec), camera_overrides)

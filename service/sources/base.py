@@ -1,0 +1,85 @@
+"""The replay-source interface: a sequence of frames plus the ground truth used only for evaluation."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from perception.frame import CameraModel, Frame
+
+
+class DatasetError(Exception):
+    """A dataset cannot be opened or read; the message is one clear line for the user."""
+
+
+@dataclass
+class Trajectory:
+    """Timestamped camera-to-world poses: ``timestamps`` (N,), ``poses`` (N, 4, 4)."""
+
+    timestamps: np.ndarray
+    poses: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.timestamps)
+
+
+@dataclass(frozen=True)
+class ObjectTruth:
+    """A ground-truth object: a yawed 3D box in the world frame (``objects_gt.json``)."""
+
+    id: int
+    label: str
+    center: tuple[float, float, float]
+    size: tuple[float, float, float]
+    yaw: float
+
+
+class Dataset(ABC):
+    """A replayable RGB-D sequence. Frame indices are 0-based.
+
+    Ground truth (``ground_truth``, ``objects``, ``loops``, ``instance_mask``) is for evaluation
+    only and is never put into the frames sent to the pipeline.
+    """
+
+    name: str
+    camera: CameraModel
+
+    @abstractmethod
+    def __len__(self) -> int: ...
+
+    @abstractmethod
+    def frame(self, index: int) -> Frame:
+        """Frame ``index`` with colour, depth, and the odometry / detections the dataset provides."""
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self.frame(i)
+
+    @property
+    def has_odometry(self) -> bool:
+        return False
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """Timestamps of all frames, (N,)."""
+        return np.array([self.frame(i).timestamp for i in range(len(self))])
+
+    @property
+    def ground_truth(self) -> Trajectory | None:
+        return None
+
+    @property
+    def objects(self) -> list[ObjectTruth] | None:
+        return None
+
+    @property
+    def loops(self) -> list[tuple[int, int]] | None:
+        """True revisit pairs (earlier, later) as 0-based frame indices."""
+        return None
+
+    def instance_mask(self, index: int) -> np.ndarray | None:
+        """Per-pixel instance ids (0 = none) of frame ``index``, matching ``objects`` ids."""
+        return None

@@ -1,0 +1,71 @@
+"""Counters and latency percentiles for the status reply."""
+
+from __future__ import annotations
+
+import threading
+from collections import Counter, deque
+
+import numpy as np
+
+
+class LatencyWindow:
+    """The last ``size`` durations of one stage, in seconds; percentiles reported in milliseconds."""
+
+    def __init__(self, size: int = 2000):
+        self._values: deque[float] = deque(maxlen=size)
+
+    def add(self, seconds: float) -> None:
+        self._values.append(seconds)
+
+    def summary(self) -> dict[str, float | int]:
+        if not self._values:
+            return {"n": 0}
+        arr = np.fromiter(self._values, dtype=float) * 1e3
+        p50, p95, p99 = np.percentile(arr, [50, 95, 99])
+        return {"n": len(arr), "p50_ms": round(float(p50), 3), "p95_ms": round(float(p95), 3),
+                "p99_ms": round(float(p99), 3), "max_ms": round(float(arr.max()), 3)}
+
+
+class ServiceStats:
+    """Thread-safe frame counters (received, processed, rejected by reason) and stage latencies."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.received = 0
+        self.processed = 0
+        self.keyframes = 0
+        self.rejected: Counter[str] = Counter()
+        self.errors: Counter[str] = Counter()
+        self.stages: dict[str, LatencyWindow] = {}
+
+    def count_received(self) -> None:
+        with self._lock:
+            self.received += 1
+
+    def count_processed(self, keyframe: bool) -> None:
+        with self._lock:
+            self.processed += 1
+            self.keyframes += int(keyframe)
+
+    def count_rejected(self, reason: str) -> None:
+        with self._lock:
+            self.rejected[reason] += 1
+
+    def count_error(self, kind: str) -> None:
+        with self._lock:
+            self.errors[kind] += 1
+
+    def time(self, stage: str, seconds: float) -> None:
+        with self._lock:
+            self.stages.setdefault(stage, LatencyWindow()).add(seconds)
+
+    def snapshot(self) -> dict:
+        with self._lock:
+            return {
+                "frames_received": self.received,
+                "frames_processed": self.processed,
+                "frames_rejected": dict(self.rejected),
+                "frames_rejected_total": sum(self.rejected.values()),
+                "errors": dict(self.errors),
+                "latency": {name: w.summary() for name, w in self.stages.items()},
+            }
