@@ -69,11 +69,13 @@ class ServiceNode:
                 log.debug("undeclare failed: %s", exc)
         self._entities.clear()
 
-    def wait_idle(self, timeout: float) -> bool:
-        """Wait until the queue is empty and no frame is in progress."""
+    def wait_done(self, frames: int, timeout: float) -> bool:
+        """Wait until ``frames`` frames have been received and each processed, rejected or dropped."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            if len(self.queue) == 0 and not self._busy:
+            s = self.stats
+            if s.received >= frames and len(self.queue) == 0 and not self._busy \
+                    and s.processed + sum(s.rejected.values()) + self.queue.dropped + sum(s.errors.values()) >= frames:
                 return True
             time.sleep(0.005)
         return False

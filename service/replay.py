@@ -46,7 +46,8 @@ class Replayer:
         """Publish every frame; returns how many and how long it took."""
         start = time.monotonic()
         t0 = None
-        bar = tqdm(total=self.count, desc=f"replay {self.dataset.name}", unit="frame", disable=not self.progress)
+        bar = tqdm(total=self.count, desc=f"replay {self.dataset.name}", unit="frame",
+                   disable=None if self.progress else True, mininterval=1.0)
         for i in range(self.count):
             frame = self.dataset.frame(i)
             payload = encode_frame(frame)

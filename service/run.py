@@ -39,7 +39,8 @@ def run_dataset(spec: str, out: Path, settings: Settings, max_frames: int | None
                             before_publish=lambda: node.queue.wait_for_space(60.0), progress=progress)
         started = time.monotonic()
         result = replayer.run()
-        node.wait_idle(timeout=120.0)
+        if not node.wait_done(result.frames, timeout=120.0):
+            log.warning("not every replayed frame reached the pipeline within 120 s")
         elapsed = time.monotonic() - started
         pub.undeclare()
         status = node.status()

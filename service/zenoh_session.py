@@ -18,10 +18,12 @@ def zenoh_config(settings: ZenohSettings, role: str, embedded: bool = False) -> 
     if embedded:
         conf.insert_json5("listen/endpoints", "[]")
         return conf
-    if role == "server":
+    if role == "server" and settings.mode != "client":
         conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
         if settings.connect:
             conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
+    elif role == "server":  # a client-mode service connects to a router
+        conf.insert_json5("connect/endpoints", json.dumps(settings.connect or settings.listen))
     else:
         conf.insert_json5("listen/endpoints", "[]")
         conf.insert_json5("connect/endpoints", json.dumps(settings.connect or settings.listen))

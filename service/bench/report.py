@@ -1,0 +1,45 @@
+"""Recording benchmark tables in docs/benchmarks.md, one marked section per benchmark."""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import platform
+import re
+from pathlib import Path
+
+DEFAULT_FILE = Path("docs/benchmarks.md")
+
+
+def machine() -> str:
+    """A one-line description of the machine the figure was measured on."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    mem = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**30
+    return f"{os.cpu_count()} cores ({cpu}), {mem:.0f} GiB, Python {platform.python_version()}"
+
+
+def markdown_table(header: list[str], rows: list[list[object]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def record(name: str, title: str, command: str, table: str, notes: str = "", path: Path | None = None) -> Path:
+    """Replace (or append) the ``name`` section of the benchmarks file with a fresh table."""
+    path = path or DEFAULT_FILE
+    body = (f"<!-- bench:{name} -->\n## {title}\n\n"
+            f"Command: `{command}`  \nMachine: {machine()}  \nDate: {dt.date.today().isoformat()}\n\n"
+            f"{table}\n" + (f"\n{notes}\n" if notes else "") + f"<!-- /bench:{name} -->")
+    text = path.read_text() if path.is_file() else "# objslam benchmarks\n\nMeasured tables, newest run of each.\n"
+    pattern = re.compile(rf"<!-- bench:{re.escape(name)} -->.*?<!-- /bench:{re.escape(name)} -->", re.S)
+    text = pattern.sub(lambda _: body, text) if pattern.search(text) else text.rstrip() + "\n\n" + body + "\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+    return path
