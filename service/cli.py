@@ -18,7 +18,6 @@ from service.sources import DatasetError
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="objslam: semantic SLAM backend over zenoh (object association, iSAM2, RL loop closure).")
 console = Console()
-err_console = Console(stderr=True)
 
 ConfigOpt = Annotated[Path | None, typer.Option("--config", help="YAML configuration file")]
 RobotOpt = Annotated[str | None, typer.Option("--robot", help="robot name: keys are <key_prefix>/<robot>/...")]
@@ -195,16 +194,14 @@ def main() -> None:
     try:
         app(standalone_mode=False)
     except (UserError, ConfigError, DatasetError, ConnectionError, TimeoutError, RuntimeError, OSError) as exc:
-        err_console.print(f"objslam: error: {exc}", highlight=False)
+        print(f"objslam: error: {' '.join(str(exc).split())}", file=sys.stderr)
         sys.exit(1)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except (typer.Abort, KeyboardInterrupt):
         sys.exit(130)
-    except Exception as exc:  # click usage errors
-        import click
-
-        if isinstance(exc, click.ClickException):
+    except Exception as exc:  # usage errors of typer's bundled click carry show() and exit_code
+        if hasattr(exc, "show") and hasattr(exc, "exit_code"):
             exc.show()
             sys.exit(exc.exit_code)
         raise

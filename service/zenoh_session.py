@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import zenoh
 
@@ -35,4 +36,6 @@ def open_session(settings: ZenohSettings, role: str, embedded: bool = False) -> 
     try:
         return zenoh.open(zenoh_config(settings, role, embedded))
     except zenoh.ZError as exc:
-        raise ConnectionError(f"cannot open zenoh session ({settings.mode}, {role}): {exc}") from None
+        reason = re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", " ".join(str(exc).split()))
+        endpoints = settings.connect or settings.listen
+        raise ConnectionError(f"cannot open zenoh session (mode {settings.mode}, {endpoints}): {reason}") from None
