@@ -62,13 +62,16 @@ class PoseGraph:
         self._update(graph, values)
         return 0
 
-    def add_keyframe(self, relative: np.ndarray, sigma_scale: float = 1.0) -> int:
-        """Append a keyframe linked to the previous one by the odometry ``relative`` pose (prev -> new)."""
+    def add_keyframe(self, relative: np.ndarray, sigma_m: float | None = None, sigma_deg: float | None = None) -> int:
+        """Append a keyframe linked to the previous one by the odometry ``relative`` pose (prev -> new).
+
+        Sigmas default to the configured odometry noise (external odometry); visual odometry passes its own.
+        """
         if not self.num_keyframes:
             raise ValueError("add_first must come before add_keyframe")
         k = self.num_keyframes
-        noise = self._odometry_noise if sigma_scale == 1.0 else pose_noise(
-            self.noise.odometry_sigma_m * sigma_scale, self.noise.odometry_sigma_deg * sigma_scale)
+        noise = self._odometry_noise if sigma_m is None else pose_noise(
+            sigma_m, sigma_deg or self.noise.odometry_sigma_deg)
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         rel = gtsam.Pose3(relative)
@@ -76,6 +79,36 @@ class PoseGraph:
         values.insert(X(k), gtsam.Pose3(self._latest).compose(rel))
         self._update(graph, values)
         return k
+
+    def add_loop(self, k_a: int, k_b: int, T_a_b: np.ndarray, sigma_m: float, sigma_deg: float,
+                 robust_k: float = 3.0, iterations: int = 10) -> int:
+        """Add a loop-closure between-factor (pose of b in a) under a Huber kernel; returns its factor index.
+
+        Huber rather than Cauchy: after long drift a true loop starts tens of sigmas away, where Cauchy's
+        weight vanishes and the loop would barely pull; outliers are kept out by the verifier instead.
+        """
+        noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(robust_k),
+                                               pose_noise(sigma_m, sigma_deg))
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.BetweenFactorPose3(X(k_a), X(k_b), gtsam.Pose3(T_a_b), noise))
+        result = self._update(graph, gtsam.Values())
+        index = int(result.getNewFactorsIndices()[0])
+        self._converge(iterations)
+        return index
+
+    def _converge(self, iterations: int) -> None:
+        """Extra iSAM2 steps until the newest pose settles: a loop change moves many poses at once."""
+        for _ in range(iterations):
+            before = self._latest
+            self._update(gtsam.NonlinearFactorGraph(), gtsam.Values())
+            if np.abs(self._latest - before).max() < 1e-5:
+                break
+
+    def remove_factors(self, indices: list[int]) -> None:
+        """Retract factors (e.g. a loop closure found inconsistent) through iSAM2's removeFactorIndices."""
+        self._update(gtsam.NonlinearFactorGraph(), gtsam.Values(), remove=indices)
+        self.num_factors -= len(indices)
+        self._converge(10)
 
     def pose(self, k: int) -> np.ndarray:
         """Current estimate of keyframe ``k`` (camera-to-world 4x4)."""
@@ -92,9 +125,13 @@ class PoseGraph:
         """6x6 marginal covariance of keyframe ``k`` (rotation, translation), from iSAM2's Bayes tree."""
         return np.asarray(self.isam.marginalCovariance(X(k)))
 
-    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values,
+                remove: list[int] | None = None) -> gtsam.ISAM2Result:
         try:
-            self.isam.update(graph, values)
+            if remove:
+                result = self.isam.update(graph, values, remove)
+            else:
+                result = self.isam.update(graph, values)
         except RuntimeError as exc:
             log.error("iSAM2 update failed: %s", exc)
             raise SolverError(str(exc)) from exc
@@ -103,3 +140,4 @@ class PoseGraph:
         self.num_keyframes += values.size()
         self._estimate = None
         self._latest = self.pose(self.num_keyframes - 1)
+        return result

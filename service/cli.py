@@ -67,22 +67,26 @@ def _camera_overrides(**values: float | None) -> dict[str, float]:
     return {k: v for k, v in values.items() if v is not None}
 
 
-def _check_lc(lc_source: LcSource, lc_policy: Path | None) -> None:
-    if lc_source is not LcSource.off or lc_policy is not None:
-        raise UserError(f"loop-closure source {lc_source.value!r} is not available in this version; use --lc-source off")
+def _with_lc(settings: Settings, lc_source: LcSource | None, lc_policy: Path | None) -> Settings:
+    """Apply ``--lc-source``; the RL policy source does not exist yet and is refused with one line."""
+    source = lc_source.value if lc_source is not None else settings.loops.source
+    if source in ("policy", "both") or lc_policy is not None:
+        raise UserError("the RL loop-closure policy is not available in this version; use --lc-source "
+                        "appearance or off")
+    settings.loops.source = source
+    return settings
 
 
 @app.command()
 def serve(config: ConfigOpt = None, robot: RobotOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
           mode: ModeOpt = None,
           state_dir: Annotated[Path | None, typer.Option("--state-dir", help="outputs written here on shutdown")] = None,
-          lc_source: Annotated[LcSource, typer.Option("--lc-source")] = LcSource.off,
+          lc_source: Annotated[LcSource | None, typer.Option("--lc-source")] = None,
           lc_policy: Annotated[Path | None, typer.Option("--lc-policy")] = None) -> None:
     """Run the long-lived mapping service (until SIGINT / SIGTERM)."""
     from service.run import serve as serve_forever
 
-    _check_lc(lc_source, lc_policy)
-    serve_forever(_settings(config, robot, connect, listen, mode, state_dir))
+    serve_forever(_with_lc(_settings(config, robot, connect, listen, mode, state_dir), lc_source, lc_policy))
 
 
 @app.command()
@@ -135,7 +139,7 @@ def run(dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME
         out: Annotated[Path, typer.Option("--out", help="output directory")],
         config: ConfigOpt = None,
         max_frames: Annotated[int | None, typer.Option("--max-frames")] = None,
-        lc_source: Annotated[LcSource, typer.Option("--lc-source")] = LcSource.off,
+        lc_source: Annotated[LcSource | None, typer.Option("--lc-source")] = None,
         lc_policy: Annotated[Path | None, typer.Option("--lc-policy")] = None,
         depth_scale: Annotated[float | None, typer.Option("--depth-scale")] = None,
         fx: Annotated[float | None, typer.Option("--fx")] = None,
@@ -146,8 +150,7 @@ def run(dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME
     from service.run import run_dataset
     from service.summary import print_summary
 
-    _check_lc(lc_source, lc_policy)
-    summary = run_dataset(dataset, out, _settings(config), max_frames,
+    summary = run_dataset(dataset, out, _with_lc(_settings(config), lc_source, lc_policy), max_frames,
                           _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy))
     print_summary(console, summary, out)
 

@@ -44,6 +44,34 @@ class KeyframeSettings(BaseModel):
     translation_m: float = Field(0.05, gt=0)
     rotation_deg: float = Field(5.0, gt=0)
     max_interval: int = Field(10, ge=1, description="frames between keyframes at most")
+    min_inliers: int = Field(120, ge=0, description="visual odometry: new keyframe when tracking weakens")
+
+
+class OdometrySettings(BaseModel):
+    """RGB-D visual odometry, used for frames that carry no odometry."""
+
+    n_features: int = Field(1500, ge=100)
+    ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio test")
+    min_matches: int = Field(30, ge=6)
+    min_inliers: int = Field(25, ge=6)
+    ransac_px: float = Field(3.0, gt=0)
+    max_residual_px: float = Field(2.0, gt=0)
+    lost_sigma_scale: float = Field(100.0, ge=1, description="odometry sigma multiplier after tracking loss")
+
+
+class LoopSettings(BaseModel):
+    """Loop-closure candidates and their geometric verification."""
+
+    source: Literal["off", "appearance", "policy", "both"] = "appearance"
+    min_gap_s: float = Field(10.0, ge=0, description="candidates are at least this much older")
+    top_k: int = Field(3, ge=1)
+    min_similarity: float = Field(0.5, ge=-1, le=1, description="global descriptor cosine similarity")
+    min_inliers: int = Field(40, ge=6)
+    max_residual_px: float = Field(2.0, gt=0)
+    gate_m: float = Field(0.5, gt=0, description="max disagreement with the current estimate")
+    gate_deg: float = Field(20.0, gt=0)
+    retract_m: float = Field(0.15, gt=0, description="accepted loops disagreeing more are retracted")
+    retract_deg: float = Field(5.0, gt=0)
 
 
 class GraphSettings(BaseModel):
@@ -77,6 +105,8 @@ class Settings(BaseSettings):
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     ingest: IngestSettings = Field(default_factory=IngestSettings)
     keyframes: KeyframeSettings = Field(default_factory=KeyframeSettings)
+    odometry: OdometrySettings = Field(default_factory=OdometrySettings)
+    loops: LoopSettings = Field(default_factory=LoopSettings)
     graph: GraphSettings = Field(default_factory=GraphSettings)
     camera: CameraDefaults = Field(default_factory=CameraDefaults)
 

@@ -48,10 +48,11 @@ class IngestQueue:
             self._cond.notify_all()
             return item
 
-    def wait_for_space(self, timeout: float) -> bool:
-        """Block until the queue is below capacity (embedded replay's back-pressure)."""
+    def wait_for_space(self, timeout: float, below: int | None = None) -> bool:
+        """Block until fewer than ``below`` (default: capacity) items wait (embedded replay's back-pressure)."""
+        limit = self.capacity if below is None else min(below, self.capacity)
         with self._cond:
-            return self._cond.wait_for(lambda: len(self._items) < self.capacity, timeout)
+            return self._cond.wait_for(lambda: len(self._items) < limit, timeout)
 
     def __len__(self) -> int:
         with self._cond:

@@ -143,7 +143,8 @@ class ServiceNode:
         snap = self.stats.snapshot()
         with self._lock:
             graph = self.pipeline.graph
-            snap.update(keyframes=graph.num_keyframes, poses=graph.num_keyframes, factors=graph.num_factors)
+            snap.update(keyframes=graph.num_keyframes, poses=graph.num_keyframes, factors=graph.num_factors,
+                        tracking_lost=self.pipeline.tracking_lost, loop_closures=self._loop_counts())
         snap.update(
             robot=self.settings.robot,
             protocol_version=VERSION,
@@ -152,7 +153,6 @@ class ServiceNode:
             queue_capacity=self.queue.capacity,
             landmarks=0,
             objects=0,
-            loop_closures={"accepted": 0, "rejected": 0},
             uptime_s=round(time.time() - self._started, 3),
         )
         return snap
@@ -172,4 +172,12 @@ class ServiceNode:
         return {"robot": self.settings.robot, "objects": []}
 
     def loops_reply(self) -> dict[str, Any]:
-        return {"robot": self.settings.robot, "loops": []}
+        """Every loop-closure candidate with its verdict (SPEC section 4 fields)."""
+        with self._lock:
+            return {"robot": self.settings.robot, "loops": self.pipeline.loop_records()}
+
+    def _loop_counts(self) -> dict[str, int]:
+        loops = self.pipeline.loops
+        if loops is None:
+            return {"accepted": 0, "rejected": 0}
+        return {"accepted": loops.n_accepted, "rejected": loops.n_rejected}

@@ -1,4 +1,7 @@
-"""The per-frame pipeline: temporal checks, keyframe selection and the pose graph. No zenoh, no disk."""
+"""The per-frame pipeline: temporal checks, odometry front end, keyframes, pose graph, loop closure.
+
+No zenoh, no disk: the service node feeds it decoded frames and serialises its state.
+"""
 
 from __future__ import annotations
 
@@ -8,10 +11,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from graph.geometry import motion_magnitude, relative
 from graph.pose_graph import NoiseSettings, PoseGraph
 from perception.frame import Frame
+from perception.frontend import ExternalOdometry, KeyframePolicy, Step, VisualOdometry
+from perception.odometry import FeatureExtractor, OdometryConfig, RelativePoseEstimator
 from service.config import Settings
+from service.loop_closure import KeyframeEntry, LoopCloser, LoopConfig
 from service.protocol import FrameRejected, Reason
 from service.sources.base import Trajectory
 
@@ -20,7 +25,7 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class FrameRecord:
-    """Where a processed frame sits in the graph: its keyframe and the odometry pose relative to it."""
+    """Where a processed frame sits in the graph: its keyframe and its odometry pose relative to it."""
 
     timestamp: float
     seq: int
@@ -31,11 +36,13 @@ class FrameRecord:
 
 
 class Pipeline:
-    """Turns validated frames into keyframes and factors (SPEC 6.8).
+    """Turns validated frames into keyframes and factors (SPEC 6.4, 6.8).
 
-    Steps per frame: (1) reject stale or duplicate timestamps, unusable depth and missing odometry;
-    (2) decide whether the frame is a keyframe; (3) add its odometry factor to iSAM2;
-    (4) record the frame relative to its keyframe so the full trajectory follows the optimised graph.
+    Per frame: (1) reject stale or duplicate timestamps and unusable depth; (2) the front end gives the
+    odometry pose and decides keyframes: the frames' own odometry when the stream carries it (decided by
+    the first frame), else RGB-D visual odometry; (3) a keyframe adds its odometry factor to iSAM2;
+    (4) loop-closure candidates of the keyframe are verified and accepted ones become robust factors;
+    (5) every frame is recorded relative to its keyframe, so the full trajectory follows the graph.
     """
 
     def __init__(self, settings: Settings):
@@ -43,9 +50,18 @@ class Pipeline:
         g = settings.graph
         self.graph = PoseGraph(NoiseSettings(g.odometry_sigma_m, g.odometry_sigma_deg, g.prior_sigma_m,
                                              g.prior_sigma_deg, g.relinearize_threshold, g.relinearize_skip))
+        k = settings.keyframes
+        self.policy = KeyframePolicy(k.translation_m, k.rotation_deg, k.max_interval, k.min_inliers,
+                                     settings.odometry.lost_sigma_scale)
+        o = settings.odometry
+        self.odometry_config = OdometryConfig(o.n_features, o.ratio, o.min_matches, o.min_inliers, o.ransac_px,
+                                              o.max_residual_px)
+        self.frontend: ExternalOdometry | VisualOdometry | None = None
+        self.loops: LoopCloser | None = None
+        self._extractor: FeatureExtractor | None = None
         self.records: list[FrameRecord] = []
         self._kf_odometry: list[np.ndarray] = []
-        self._since_keyframe = 0
+        self.tracking_lost = 0
 
     @property
     def last_timestamp(self) -> float:
@@ -54,17 +70,32 @@ class Pipeline:
     def process(self, frame: Frame) -> FrameRecord:
         """Add one frame; raises FrameRejected (counted by the caller) when it cannot be used."""
         self._check(frame)
-        odom = frame.odometry
-        if not self.records:
-            record = self._add_keyframe(frame, odom, first=True)
-        elif self._is_keyframe(odom):
-            record = self._add_keyframe(frame, odom, first=False)
+        if self.frontend is None:
+            self._start(frame)
+        step = self.frontend.track(frame)
+        self.tracking_lost += int(step.lost)
+        if step.keyframe:
+            record = self._add_keyframe(frame, step)
         else:
             kf = len(self._kf_odometry) - 1
-            record = FrameRecord(frame.timestamp, frame.seq, kf, False, odom, relative(self._kf_odometry[kf], odom))
-            self._since_keyframe += 1
+            record = FrameRecord(frame.timestamp, frame.seq, kf, False, step.pose,
+                                 np.linalg.inv(self._kf_odometry[kf]) @ step.pose)
         self.records.append(record)
         return record
+
+    def _start(self, frame: Frame) -> None:
+        """Choose the front end from the first frame and set up loop closure for its camera."""
+        if frame.odometry is not None:
+            self.frontend = ExternalOdometry(self.policy)
+        else:
+            self.frontend = VisualOdometry(frame.camera, self.policy, self.odometry_config)
+            log.info("frames carry no odometry: using RGB-D visual odometry")
+        lc = self.settings.loops
+        if lc.source in ("appearance", "both"):
+            config = LoopConfig(lc.source, lc.min_gap_s, lc.top_k, lc.min_similarity, lc.min_inliers,
+                                lc.max_residual_px, lc.gate_m, lc.gate_deg, lc.retract_m, lc.retract_deg)
+            self.loops = LoopCloser(self.graph, RelativePoseEstimator(frame.camera, self.odometry_config), config)
+            self._extractor = FeatureExtractor(frame.camera, self.odometry_config)
 
     def _check(self, frame: Frame) -> None:
         if frame.timestamp == self.last_timestamp:
@@ -73,30 +104,25 @@ class Pipeline:
             raise FrameRejected(Reason.OUT_OF_ORDER, f"timestamp {frame.timestamp} < {self.last_timestamp}")
         if not np.any(frame.depth):
             raise FrameRejected(Reason.EMPTY_DEPTH, "depth image has no valid pixel")
-        if frame.odometry is None:
-            raise FrameRejected(Reason.NO_ODOMETRY,
-                                "frame carries no odometry and the RGB-D odometry front end is not available")
+        if isinstance(self.frontend, ExternalOdometry) and frame.odometry is None:
+            raise FrameRejected(Reason.NO_ODOMETRY, "this stream carries odometry but the frame has none")
 
-    def _is_keyframe(self, odom: np.ndarray) -> bool:
-        k = self.settings.keyframes
-        trans, rot = motion_magnitude(relative(self._kf_odometry[-1], odom))
-        return (trans >= k.translation_m or rot >= math.radians(k.rotation_deg)
-                or self._since_keyframe + 1 >= k.max_interval)
-
-    def _add_keyframe(self, frame: Frame, odom: np.ndarray, first: bool) -> FrameRecord:
-        if first:
-            kf = self.graph.add_first(odom)
+    def _add_keyframe(self, frame: Frame, step: Step) -> FrameRecord:
+        if not self._kf_odometry:
+            kf = self.graph.add_first(step.pose)
         else:
-            kf = self.graph.add_keyframe(relative(self._kf_odometry[-1], odom))
-        self._kf_odometry.append(odom)
-        self._since_keyframe = 0
-        return FrameRecord(frame.timestamp, frame.seq, kf, True, odom, np.eye(4))
+            kf = self.graph.add_keyframe(step.factor, step.sigma_m, step.sigma_deg)
+        self._kf_odometry.append(step.pose)
+        if self.loops is not None:
+            features = step.features if step.features is not None else self._extractor.extract(frame)
+            self.loops.add_keyframe(KeyframeEntry(kf, frame.timestamp, frame.seq, features), frame.rgb)
+        return FrameRecord(frame.timestamp, frame.seq, kf, True, step.pose, np.eye(4))
 
     def trajectory(self) -> Trajectory:
         """Optimised poses of every processed frame (keyframe estimate composed with its offset)."""
-        kf_poses = self.graph.poses()
         if not self.records:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        kf_poses = self.graph.poses()
         poses = np.stack([kf_poses[r.keyframe] @ r.from_keyframe for r in self.records])
         return Trajectory(np.array([r.timestamp for r in self.records]), poses)
 
@@ -105,3 +131,6 @@ class Pipeline:
         if not self.records:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
         return Trajectory(np.array([r.timestamp for r in self.records]), np.stack([r.odometry for r in self.records]))
+
+    def loop_records(self) -> list[dict]:
+        return list(self.loops.records) if self.loops is not None else []

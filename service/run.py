@@ -28,15 +28,13 @@ def run_dataset(spec: str, out: Path, settings: Settings, max_frames: int | None
     room in the ingest queue instead of letting frames drop.
     """
     dataset = open_dataset(spec, camera_overrides)
-    if not dataset.has_odometry:
-        raise RuntimeError(f"{spec} has no odometry.txt and the RGB-D odometry front end is not available yet")
     session = open_session(settings.zenoh, "server", embedded=True)
     node = ServiceNode(settings, session)
     try:
         node.start()
         pub = frame_publisher(session, f"{node.prefix}/rgbd")
         replayer = Replayer(dataset, pub.put, max_rate=True, max_frames=max_frames,
-                            before_publish=lambda: node.queue.wait_for_space(60.0), progress=progress)
+                            before_publish=lambda: node.queue.wait_for_space(60.0, below=2), progress=progress)
         started = time.monotonic()
         result = replayer.run()
         if not node.wait_done(result.frames, timeout=120.0):

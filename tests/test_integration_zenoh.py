@@ -59,7 +59,8 @@ def _wait_for_service(session: zenoh.Session, key: str, deadline_s: float = 60.0
 def test_replayed_frames_are_all_processed_and_trajectory_equals_chained_odometry(router, tmp_path):
     session, endpoint = router
     common = ["--mode", "client", "--connect", endpoint, "--robot", "itest"]
-    serve = _objslam("serve", *common, "--state-dir", str(tmp_path / "state"),
+    serve_only = ["--lc-source", "off"]
+    serve = _objslam("serve", *common, *serve_only, "--state-dir", str(tmp_path / "state"),
                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         _wait_for_service(session, "objslam/itest/status")

@@ -1,0 +1,117 @@
+"""Odometry front ends: external odometry from the frames, or RGB-D visual odometry (SPEC 6.4).
+
+Both decide keyframes and give, for each keyframe, the relative pose from the previous keyframe with
+its noise: the odometry between-factor of the graph.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from graph.geometry import motion_magnitude, relative
+from perception.frame import CameraModel, Frame
+from perception.odometry import Features, FeatureExtractor, OdometryConfig, Rejected, RelativePoseEstimator
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class KeyframePolicy:
+    """A frame becomes a keyframe after enough motion, too many frames, or too few tracked inliers."""
+
+    translation_m: float = 0.05
+    rotation_deg: float = 5.0
+    max_interval: int = 10
+    min_inliers: int = 120
+    lost_sigma_scale: float = 100.0
+
+
+@dataclass
+class Step:
+    """What the front end made of one frame."""
+
+    pose: np.ndarray
+    keyframe: bool
+    factor: np.ndarray | None = None
+    sigma_m: float | None = None
+    sigma_deg: float | None = None
+    lost: bool = False
+    inliers: int = 0
+    features: Features | None = None
+
+
+class ExternalOdometry:
+    """Odometry poses carried by the frames; the factor is the odometry increment between keyframes."""
+
+    def __init__(self, policy: KeyframePolicy):
+        self.policy = policy
+        self._kf_pose: np.ndarray | None = None
+        self._since = 0
+
+    def track(self, frame: Frame) -> Step:
+        pose = frame.odometry
+        if self._kf_pose is None:
+            self._kf_pose, self._since = pose, 0
+            return Step(pose, True)
+        rel = relative(self._kf_pose, pose)
+        trans, rot = motion_magnitude(rel)
+        self._since += 1
+        p = self.policy
+        if trans >= p.translation_m or rot >= math.radians(p.rotation_deg) or self._since >= p.max_interval:
+            self._kf_pose, self._since = pose, 0
+            return Step(pose, True, rel)
+        return Step(pose, False)
+
+
+class VisualOdometry:
+    """Frame-to-keyframe RGB-D odometry: ORB + depth on the keyframe, PnP-RANSAC against the new frame.
+
+    Tracking loss (too few matches or inliers, no texture, no depth) keeps the last pose, makes the frame
+    a keyframe with a weak factor (``lost_sigma_scale``) and re-initialises on it; it never raises.
+    """
+
+    def __init__(self, camera: CameraModel, policy: KeyframePolicy, config: OdometryConfig = OdometryConfig()):
+        self.policy = policy
+        self.extractor = FeatureExtractor(camera, config)
+        self.estimator = RelativePoseEstimator(camera, config)
+        self._kf_pose: np.ndarray | None = None
+        self._kf_features: Features | None = None
+        self._last_pose = np.eye(4)
+        self._since = 0
+        self.lost_count = 0
+
+    def track(self, frame: Frame) -> Step:
+        features = self.extractor.extract(frame)
+        if self._kf_pose is None:
+            return self._new_keyframe(np.eye(4), features, Step(np.eye(4), True, features=features))
+        self._since += 1
+        try:
+            rel = self.estimator.estimate(self._kf_features, features)
+        except Rejected as exc:
+            return self._lost(frame, features, exc)
+        pose = self._kf_pose @ rel.T_a_b
+        self._last_pose = pose
+        trans, rot = motion_magnitude(rel.T_a_b)
+        p = self.policy
+        if (trans >= p.translation_m or rot >= math.radians(p.rotation_deg) or self._since >= p.max_interval
+                or rel.inliers < p.min_inliers):
+            step = Step(pose, True, rel.T_a_b, rel.sigma_m, rel.sigma_deg, inliers=rel.inliers, features=features)
+            return self._new_keyframe(pose, features, step)
+        return Step(pose, False, inliers=rel.inliers, features=features)
+
+    def _lost(self, frame: Frame, features: Features, exc: Rejected) -> Step:
+        self.lost_count += 1
+        log.warning("tracking lost at t=%.3f (%s); re-initialising with a weak factor", frame.timestamp, exc)
+        pose = self._last_pose
+        scale = self.policy.lost_sigma_scale
+        step = Step(pose, True, relative(self._kf_pose, pose), 0.05 * scale, 2.0 * scale, lost=True,
+                    features=features)
+        return self._new_keyframe(pose, features, step)
+
+    def _new_keyframe(self, pose: np.ndarray, features: Features, step: Step) -> Step:
+        self._kf_pose, self._kf_features, self._since, self._last_pose = pose, features, 0, pose
+        return step

@@ -1,0 +1,145 @@
+"""RGB-D visual odometry (Sec. 2.4.4, SPEC 6.4): ORB features with depth, PnP-RANSAC, LM refinement.
+
+Poses are those of the body frame: the colour camera when depth is registered, else the depth camera
+(``T_body = T_color * depth_to_color``), which is the frame the ground truth of Kinect data refers to.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from graph.geometry import inverse
+from perception.frame import CameraModel, Frame
+from perception.registration import depth_at_color_pixels
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    """Feature extraction and geometric acceptance thresholds."""
+
+    n_features: int = 1500
+    ratio: float = 0.8
+    min_matches: int = 30
+    min_inliers: int = 25
+    ransac_px: float = 3.0
+    max_residual_px: float = 2.0
+    min_depth_m: float = 0.2
+    max_depth_m: float = 6.0
+    sigma_px: float = 1.0
+
+
+@dataclass
+class Features:
+    """ORB keypoints of one frame with their colour-camera 3D points (NaN without depth)."""
+
+    pixels: np.ndarray
+    descriptors: np.ndarray
+    points: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.pixels)
+
+
+@dataclass(frozen=True)
+class Relative:
+    """A verified relative pose ``T_a_b`` (pose of b in a's body frame) and its evidence."""
+
+    T_a_b: np.ndarray
+    matches: int
+    inliers: int
+    residual_px: float
+    sigma_m: float
+    sigma_deg: float
+
+
+class Rejected(Exception):
+    """Relative pose estimation failed; ``reason`` is one of the documented rejection reasons."""
+
+    def __init__(self, reason: str, detail: str = "", matches: int = 0, inliers: int = 0):
+        super().__init__(f"{reason}: {detail}")
+        self.reason, self.detail, self.matches, self.inliers = reason, detail, matches, inliers
+
+
+class FeatureExtractor:
+    """ORB on the colour image; depth at each keypoint from depth registered to colour."""
+
+    def __init__(self, camera: CameraModel, config: OdometryConfig = OdometryConfig()):
+        self.camera = camera
+        self.config = config
+        self.orb = cv2.ORB_create(config.n_features, scaleFactor=1.2, nlevels=8, fastThreshold=12)
+
+    def extract(self, frame: Frame) -> Features:
+        """Keypoints, descriptors and 3D points of ``frame``."""
+        gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
+        kps, desc = self.orb.detectAndCompute(gray, None)
+        if desc is None or not kps:
+            return Features(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros((0, 3)))
+        px = np.array([k.pt for k in kps], dtype=np.float32)
+        return Features(px, desc, self._points(px, frame.depth_m()))
+
+    def _points(self, px: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+        c, cfg = self.camera.color, self.config
+        z = depth_at_color_pixels(px, depth_m, self.camera)
+        with np.errstate(invalid="ignore"):
+            z[(z < cfg.min_depth_m) | (z > cfg.max_depth_m)] = np.nan
+        return np.stack([(px[:, 0] - c.cx) / c.fx * z, (px[:, 1] - c.cy) / c.fy * z, z], axis=1)
+
+
+class RelativePoseEstimator:
+    """Relative pose between two frames' features by PnP-RANSAC on a's 3D points and b's pixels."""
+
+    def __init__(self, camera: CameraModel, config: OdometryConfig = OdometryConfig()):
+        self.camera = camera
+        self.config = config
+        self.K = camera.color.matrix()
+        self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+        E = camera.depth_to_color if (not camera.registered and camera.depth_to_color is not None) else np.eye(4)
+        self.E, self.E_inv = E, inverse(E)
+
+    def estimate(self, a: Features, b: Features, config: OdometryConfig | None = None) -> Relative:
+        """``T_a_b`` in the body frame, or raise Rejected(reason)."""
+        cfg = config or self.config
+        ia, ib = self._match(a, b, cfg)
+        if len(ia) < cfg.min_matches:
+            raise Rejected("too_few_matches", f"{len(ia)} < {cfg.min_matches}", len(ia))
+        obj = a.points[ia].astype(np.float64)
+        img = b.pixels[ib].astype(np.float64)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, self.K, None, iterationsCount=300,
+                                                 reprojectionError=cfg.ransac_px, confidence=0.999,
+                                                 flags=cv2.SOLVEPNP_EPNP)
+        n_inl = 0 if inl is None else len(inl)
+        if not ok or n_inl < cfg.min_inliers:
+            raise Rejected("too_few_inliers", f"{n_inl} < {cfg.min_inliers}", len(ia), n_inl)
+        inl = inl[:, 0]
+        rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], self.K, None, rvec, tvec)
+        proj, _ = cv2.projectPoints(obj[inl], rvec, tvec, self.K, None)
+        residual = float(np.sqrt(np.mean(np.sum((proj[:, 0] - img[inl]) ** 2, axis=1))))
+        if residual > cfg.max_residual_px:
+            raise Rejected("residual_too_large", f"{residual:.2f} px > {cfg.max_residual_px}", len(ia), n_inl)
+        T_b_a = np.eye(4)
+        T_b_a[:3, :3] = cv2.Rodrigues(rvec)[0]
+        T_b_a[:3, 3] = tvec[:, 0]
+        T_color = inverse(T_b_a)
+        sigma_m = max(0.002, 0.08 / np.sqrt(n_inl))
+        sigma_deg = max(0.05, 3.0 / np.sqrt(n_inl))
+        return Relative(self.E_inv @ T_color @ self.E, len(ia), n_inl, residual, sigma_m, sigma_deg)
+
+    def _match(self, a: Features, b: Features, cfg: OdometryConfig) -> tuple[np.ndarray, np.ndarray]:
+        valid = np.nonzero(np.isfinite(a.points[:, 2]))[0]
+        if len(valid) < 2 or len(b) < 2:
+            return np.zeros(0, int), np.zeros(0, int)
+        knn = self.matcher.knnMatch(a.descriptors[valid], b.descriptors, k=2)
+        ia, ib = [], []
+        for pair in knn:
+            if len(pair) == 2 and pair[0].distance < cfg.ratio * pair[1].distance:
+                ia.append(valid[pair[0].queryIdx])
+                ib.append(pair[0].trainIdx)
+        ia, ib = np.asarray(ia, int), np.asarray(ib, int)
+        _, first = np.unique(ib, return_index=True)  # one match per b keypoint
+        return ia[first], ib[first]

@@ -1,0 +1,83 @@
+"""Depth reprojection between cameras: registering depth to colour, and warping depth between poses."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from perception.frame import CameraModel, Intrinsics
+
+
+def backproject(depth_m: np.ndarray, K: Intrinsics, step: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Camera-frame 3D points (N, 3) of the valid depth pixels, with their pixel rows and columns."""
+    d = depth_m[::step, ::step]
+    v, u = np.nonzero(np.isfinite(d) & (d > 0))
+    z = d[v, u]
+    u = u * step
+    v = v * step
+    pts = np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], axis=1)
+    return pts, v, u
+
+
+def project_zbuffer(points: np.ndarray, K: Intrinsics, width: int, height: int) -> np.ndarray:
+    """Depth image (metres, NaN = empty) of camera-frame points, nearest point per pixel wins."""
+    out = np.full(height * width, np.nan, dtype=np.float32)
+    z = points[:, 2]
+    front = z > 1e-6
+    pts, z = points[front], z[front]
+    u = np.round(pts[:, 0] / z * K.fx + K.cx).astype(np.int64)
+    v = np.round(pts[:, 1] / z * K.fy + K.cy).astype(np.int64)
+    inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
+    idx, z = v[inside] * width + u[inside], z[inside]
+    order = np.argsort(z, kind="stable")[::-1]  # far to near: the nearest write lands last
+    out[idx[order]] = z[order]
+    return out.reshape(height, width)
+
+
+def reproject_depth(depth_m: np.ndarray, K_src: Intrinsics, K_dst: Intrinsics, T_dst_src: np.ndarray,
+                    width: int, height: int) -> np.ndarray:
+    """Depth seen from another camera: back-project with K_src, move by T_dst_src, z-buffer with K_dst."""
+    pts, _, _ = backproject(depth_m, K_src)
+    moved = pts @ T_dst_src[:3, :3].T + T_dst_src[:3, 3]
+    return project_zbuffer(moved, K_dst, width, height)
+
+
+def depth_in_color(depth_m: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """Depth registered to the colour image (unchanged when the sensor is already registered)."""
+    if camera.registered:
+        return depth_m
+    T = camera.depth_to_color if camera.depth_to_color is not None else np.eye(4)
+    return reproject_depth(depth_m, camera.depth, camera.color, T, camera.width, camera.height)
+
+
+def depth_at_color_pixels(pixels: np.ndarray, depth_m: np.ndarray, camera: CameraModel,
+                          iterations: int = 3) -> np.ndarray:
+    """Colour-camera depth (z, metres; NaN where unknown) at colour pixels (N, 2).
+
+    For an unregistered sensor each pixel's ray is intersected with the depth image by fixed-point
+    iteration: guess z, map the colour ray point into the depth image, read the depth there, repeat.
+    With a few-centimetre baseline this converges in two or three steps and costs O(N), not a full
+    registration of the depth image.
+    """
+    h, w = depth_m.shape
+    if camera.registered:
+        u = np.clip(np.round(pixels[:, 0]).astype(int), 0, w - 1)
+        v = np.clip(np.round(pixels[:, 1]).astype(int), 0, h - 1)
+        return depth_m[v, u].astype(float)
+    c, d = camera.color, camera.depth
+    E = camera.depth_to_color if camera.depth_to_color is not None else np.eye(4)
+    E_inv = np.linalg.inv(E)
+    rays = np.stack([(pixels[:, 0] - c.cx) / c.fx, (pixels[:, 1] - c.cy) / c.fy, np.ones(len(pixels))], axis=1)
+    z = np.full(len(pixels), float(np.nanmedian(depth_m)) if np.isfinite(depth_m).any() else 1.0)
+    for _ in range(iterations):
+        X_d = (rays * z[:, None]) @ E_inv[:3, :3].T + E_inv[:3, 3]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = np.round(X_d[:, 0] / X_d[:, 2] * d.fx + d.cx)
+            v = np.round(X_d[:, 1] / X_d[:, 2] * d.fy + d.cy)
+        inside = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        z_d = np.full(len(pixels), np.nan)
+        z_d[inside] = depth_m[v[inside].astype(int), u[inside].astype(int)]
+        X_dn = np.stack([(u - d.cx) / d.fx * z_d, (v - d.cy) / d.fy * z_d, z_d], axis=1)
+        z_new = (X_dn @ E[:3, :3].T + E[:3, 3])[:, 2]
+        z = np.where(np.isfinite(z_new), z_new, z)
+        last = z_new
+    return last

@@ -1,0 +1,136 @@
+"""Loop closure: propose candidates for each keyframe, verify them geometrically, add robust factors.
+
+Every candidate and its verdict is recorded (``loops`` queryable, ``loops.json``). A loop is accepted only
+when (1) PnP-RANSAC between the two keyframes has enough inliers and a small residual, and (2) the
+measured relative pose agrees with the current graph estimate within a gate. After each accepted loop the
+accepted loops are re-checked against the new estimate, and one that now disagrees is retracted through
+iSAM2's removeFactorIndices (a false loop is worse than a missed one).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from graph.geometry import motion_magnitude, relative
+from graph.pose_graph import PoseGraph
+from perception.odometry import Features, OdometryConfig, Rejected, RelativePoseEstimator
+from perception.place_recognition import PlaceIndex, global_descriptor
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class LoopConfig:
+    """Candidate search, verification thresholds and the consistency gate."""
+
+    source: str = "appearance"
+    min_gap_s: float = 10.0
+    top_k: int = 3
+    min_similarity: float = 0.5
+    min_inliers: int = 40
+    max_residual_px: float = 2.0
+    gate_m: float = 0.5
+    gate_deg: float = 20.0
+    retract_m: float = 0.15
+    retract_deg: float = 5.0
+    sigma_floor_m: float = 0.01
+    sigma_floor_deg: float = 0.5
+
+
+@dataclass
+class KeyframeEntry:
+    """What loop closure keeps of a keyframe."""
+
+    index: int
+    timestamp: float
+    frame: int
+    features: Features
+
+
+@dataclass
+class LoopCloser:
+    """Appearance candidates + geometric verification for one robot's keyframes."""
+
+    graph: PoseGraph
+    estimator: RelativePoseEstimator
+    config: LoopConfig = LoopConfig()
+    records: list[dict[str, Any]] = field(default_factory=list)
+    accepted: dict[int, tuple[int, int, np.ndarray]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.places = PlaceIndex()
+        self.keyframes: dict[int, KeyframeEntry] = {}
+        c = self.config
+        self.verify_config = OdometryConfig(min_matches=c.min_inliers, min_inliers=c.min_inliers,
+                                            max_residual_px=c.max_residual_px)
+
+    @property
+    def n_accepted(self) -> int:
+        return sum(1 for r in self.records if r["accepted"])
+
+    @property
+    def n_rejected(self) -> int:
+        return len(self.records) - self.n_accepted
+
+    def add_keyframe(self, entry: KeyframeEntry, rgb: np.ndarray) -> list[dict[str, Any]]:
+        """Store the keyframe, try its candidates, and return the new loop records."""
+        descriptor = global_descriptor(rgb)
+        c = self.config
+        new = []
+        for cand in self.places.query(descriptor, entry.timestamp, c.min_gap_s, c.top_k, c.min_similarity):
+            new.append(self._try(self.keyframes[cand.index], entry, "appearance", cand.similarity))
+            if new[-1]["accepted"]:
+                break  # one loop per keyframe is enough to pull the graph
+        self.places.add(entry.index, entry.timestamp, descriptor)
+        self.keyframes[entry.index] = entry
+        self.records.extend(new)
+        if any(r["accepted"] for r in new):
+            self._recheck()
+        return new
+
+    def _try(self, match: KeyframeEntry, query: KeyframeEntry, source: str, similarity: float) -> dict[str, Any]:
+        record: dict[str, Any] = {
+            "query_t": query.timestamp, "match_t": match.timestamp, "query_frame": query.frame,
+            "match_frame": match.frame, "query_keyframe": query.index, "match_keyframe": match.index,
+            "source": source, "similarity": round(similarity, 4), "accepted": False}
+        try:
+            rel = self.estimator.estimate(match.features, query.features, self.verify_config)
+        except Rejected as exc:
+            record.update(reason=exc.reason, matches=exc.matches, inliers=exc.inliers)
+            return record
+        record.update(matches=rel.matches, inliers=rel.inliers, residual_px=round(rel.residual_px, 3))
+        estimate = relative(self.graph.pose(match.index), self.graph.pose(query.index))
+        dt, dr = motion_magnitude(relative(estimate, rel.T_a_b))
+        record.update(translation_diff_m=round(dt, 4), rotation_diff_deg=round(math.degrees(dr), 3))
+        if dt > self.config.gate_m or math.degrees(dr) > self.config.gate_deg:
+            record["reason"] = "inconsistent_with_odometry"
+            return record
+        sigma_m = max(self.config.sigma_floor_m, rel.sigma_m)
+        sigma_deg = max(self.config.sigma_floor_deg, rel.sigma_deg)
+        factor = self.graph.add_loop(match.index, query.index, rel.T_a_b, sigma_m, sigma_deg)
+        self.accepted[factor] = (match.index, query.index, rel.T_a_b)
+        record.update(accepted=True, reason="verified", factor=factor)
+        log.info("loop closure accepted: keyframe %d <-> %d (%d inliers)", match.index, query.index, rel.inliers)
+        return record
+
+    def _recheck(self) -> None:
+        """Retract accepted loops that disagree with the estimate the other loops now give."""
+        bad = []
+        for factor, (a, b, T_a_b) in self.accepted.items():
+            dt, dr = motion_magnitude(relative(relative(self.graph.pose(a), self.graph.pose(b)), T_a_b))
+            if dt > self.config.retract_m or math.degrees(dr) > self.config.retract_deg:
+                bad.append(factor)
+        if not bad:
+            return
+        self.graph.remove_factors(bad)
+        for factor in bad:
+            del self.accepted[factor]
+            for r in self.records:
+                if r.get("factor") == factor:
+                    r.update(accepted=False, reason="retracted_inconsistent")
+            log.warning("loop closure factor %d retracted: inconsistent with the other loops", factor)
