@@ -14,6 +14,7 @@ import numpy as np
 
 from graph.geometry import motion_magnitude, relative
 from perception.frame import CameraModel, Frame
+from perception.icp import icp_refine
 from perception.odometry import Features, FeatureExtractor, OdometryConfig, Rejected, RelativePoseEstimator
 
 log = logging.getLogger(__name__)
@@ -28,6 +29,9 @@ class KeyframePolicy:
     max_interval: int = 10
     min_inliers: int = 120
     lost_sigma_scale: float = 100.0
+    icp: bool = True
+    icp_max_correction_m: float = 0.03
+    icp_max_correction_deg: float = 2.0
 
 
 @dataclass
@@ -76,42 +80,62 @@ class VisualOdometry:
 
     def __init__(self, camera: CameraModel, policy: KeyframePolicy, config: OdometryConfig = OdometryConfig()):
         self.policy = policy
+        self.camera = camera
         self.extractor = FeatureExtractor(camera, config)
         self.estimator = RelativePoseEstimator(camera, config)
         self._kf_pose: np.ndarray | None = None
         self._kf_features: Features | None = None
+        self._kf_depth: np.ndarray | None = None
+        self.icp_used = 0
         self._last_pose = np.eye(4)
         self._since = 0
         self.lost_count = 0
 
     def track(self, frame: Frame) -> Step:
         features = self.extractor.extract(frame)
+        depth = frame.depth_m()
         if self._kf_pose is None:
-            return self._new_keyframe(np.eye(4), features, Step(np.eye(4), True, features=features))
+            return self._new_keyframe(np.eye(4), features, depth, Step(np.eye(4), True, features=features))
         self._since += 1
         try:
             rel = self.estimator.estimate(self._kf_features, features)
         except Rejected as exc:
-            return self._lost(frame, features, exc)
+            return self._lost(frame, features, depth, exc)
         pose = self._kf_pose @ rel.T_a_b
         self._last_pose = pose
         trans, rot = motion_magnitude(rel.T_a_b)
         p = self.policy
         if (trans >= p.translation_m or rot >= math.radians(p.rotation_deg) or self._since >= p.max_interval
                 or rel.inliers < p.min_inliers):
-            step = Step(pose, True, rel.T_a_b, rel.sigma_m, rel.sigma_deg, inliers=rel.inliers, features=features)
-            return self._new_keyframe(pose, features, step)
+            T = self._refine(rel.T_a_b, depth)
+            pose = self._kf_pose @ T
+            step = Step(pose, True, T, rel.sigma_m, rel.sigma_deg, inliers=rel.inliers, features=features)
+            return self._new_keyframe(pose, features, depth, step)
         return Step(pose, False, inliers=rel.inliers, features=features)
 
-    def _lost(self, frame: Frame, features: Features, exc: Rejected) -> Step:
+    def _refine(self, T_pnp: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Depth ICP from the PnP estimate, kept only when it corrects by a plausible amount."""
+        if not self.policy.icp:
+            return T_pnp
+        result = icp_refine(depth, self._kf_depth, self.camera.depth, T_pnp)
+        if result is None:
+            return T_pnp
+        dt, dr = motion_magnitude(relative(T_pnp, result.T))
+        if dt > self.policy.icp_max_correction_m or math.degrees(dr) > self.policy.icp_max_correction_deg:
+            return T_pnp
+        self.icp_used += 1
+        return result.T
+
+    def _lost(self, frame: Frame, features: Features, depth: np.ndarray, exc: Rejected) -> Step:
         self.lost_count += 1
         log.warning("tracking lost at t=%.3f (%s); re-initialising with a weak factor", frame.timestamp, exc)
         pose = self._last_pose
         scale = self.policy.lost_sigma_scale
         step = Step(pose, True, relative(self._kf_pose, pose), 0.05 * scale, 2.0 * scale, lost=True,
                     features=features)
-        return self._new_keyframe(pose, features, step)
+        return self._new_keyframe(pose, features, depth, step)
 
-    def _new_keyframe(self, pose: np.ndarray, features: Features, step: Step) -> Step:
-        self._kf_pose, self._kf_features, self._since, self._last_pose = pose, features, 0, pose
+    def _new_keyframe(self, pose: np.ndarray, features: Features, depth: np.ndarray, step: Step) -> Step:
+        self._kf_pose, self._kf_features, self._kf_depth = pose, features, depth
+        self._since, self._last_pose = 0, pose
         return step

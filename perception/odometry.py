@@ -32,6 +32,9 @@ class OdometryConfig:
     min_depth_m: float = 0.2
     max_depth_m: float = 6.0
     sigma_px: float = 1.0
+    max_edge_ratio: float | None = 0.02
+    sigma_m_coeff: float = 0.08
+    sigma_deg_coeff: float = 3.0
 
 
 @dataclass
@@ -85,7 +88,7 @@ class FeatureExtractor:
 
     def _points(self, px: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
         c, cfg = self.camera.color, self.config
-        z = depth_at_color_pixels(px, depth_m, self.camera)
+        z = depth_at_color_pixels(px, depth_m, self.camera, max_edge_ratio=cfg.max_edge_ratio)
         with np.errstate(invalid="ignore"):
             z[(z < cfg.min_depth_m) | (z > cfg.max_depth_m)] = np.nan
         return np.stack([(px[:, 0] - c.cx) / c.fx * z, (px[:, 1] - c.cy) / c.fy * z, z], axis=1)
@@ -126,8 +129,8 @@ class RelativePoseEstimator:
         T_b_a[:3, :3] = cv2.Rodrigues(rvec)[0]
         T_b_a[:3, 3] = tvec[:, 0]
         T_color = inverse(T_b_a)
-        sigma_m = max(0.002, 0.08 / np.sqrt(n_inl))
-        sigma_deg = max(0.05, 3.0 / np.sqrt(n_inl))
+        sigma_m = max(0.002, cfg.sigma_m_coeff / np.sqrt(n_inl))
+        sigma_deg = max(0.05, cfg.sigma_deg_coeff / np.sqrt(n_inl))
         return Relative(self.E_inv @ T_color @ self.E, len(ia), n_inl, residual, sigma_m, sigma_deg)
 
     def _match(self, a: Features, b: Features, cfg: OdometryConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from perception.frame import CameraModel, Intrinsics
@@ -49,8 +50,19 @@ def depth_in_color(depth_m: np.ndarray, camera: CameraModel) -> np.ndarray:
     return reproject_depth(depth_m, camera.depth, camera.color, T, camera.width, camera.height)
 
 
+def smooth_depth_mask(depth_m: np.ndarray, max_ratio: float = 0.02, radius: int = 2) -> np.ndarray:
+    """Pixels whose (2r+1)^2 neighbourhood is fully valid and spans less than ``max_ratio`` of the depth.
+
+    Feature points on depth discontinuities get mixed foreground/background depth; this excludes them.
+    """
+    d = np.nan_to_num(depth_m, nan=0.0).astype(np.float32)
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    hi, lo = cv2.dilate(d, kernel), cv2.erode(d, kernel)
+    return (lo > 0) & (hi - lo < max_ratio * d)
+
+
 def depth_at_color_pixels(pixels: np.ndarray, depth_m: np.ndarray, camera: CameraModel,
-                          iterations: int = 3) -> np.ndarray:
+                          iterations: int = 3, max_edge_ratio: float | None = None) -> np.ndarray:
     """Colour-camera depth (z, metres; NaN where unknown) at colour pixels (N, 2).
 
     For an unregistered sensor each pixel's ray is intersected with the depth image by fixed-point
@@ -59,6 +71,8 @@ def depth_at_color_pixels(pixels: np.ndarray, depth_m: np.ndarray, camera: Camer
     registration of the depth image.
     """
     h, w = depth_m.shape
+    if max_edge_ratio is not None:
+        depth_m = np.where(smooth_depth_mask(depth_m, max_edge_ratio), depth_m, np.nan)
     if camera.registered:
         u = np.clip(np.round(pixels[:, 0]).astype(int), 0, w - 1)
         v = np.clip(np.round(pixels[:, 1]).astype(int), 0, h - 1)

@@ -191,6 +191,26 @@ def bench_throughput(frames: Annotated[int, typer.Option("--frames")] = 300,
     run_throughput(console, dataset, frames, write)
 
 
+DatasetsOpt = Annotated[list[str] | None, typer.Option("--dataset", help="dataset spec (repeatable)")]
+WriteOpt = Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")]
+
+
+@bench_app.command("odometry")
+def bench_odometry(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
+    """ATE/RPE of the RGB-D front end with and without loops (7-Scenes + 3 synthetic seeds); also loop table."""
+    from service.bench.slam import run_slam_bench
+
+    run_slam_bench(console, dataset, write)
+
+
+@bench_app.command("loops")
+def bench_loops(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
+    """Loop candidates judged against ground truth (same runs as `bench odometry`, both tables recorded)."""
+    from service.bench.slam import run_slam_bench
+
+    run_slam_bench(console, dataset, write)
+
+
 def main() -> None:
     """Console entry point: domain errors become one line on stderr and exit code 1."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

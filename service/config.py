@@ -57,6 +57,9 @@ class OdometrySettings(BaseModel):
     ransac_px: float = Field(3.0, gt=0)
     max_residual_px: float = Field(2.0, gt=0)
     lost_sigma_scale: float = Field(100.0, ge=1, description="odometry sigma multiplier after tracking loss")
+    icp: bool = Field(True, description="refine keyframe-to-keyframe poses by depth point-to-plane ICP")
+    sigma_m_coeff: float = Field(0.08, gt=0, description="factor translation sigma = coeff / sqrt(inliers)")
+    sigma_deg_coeff: float = Field(3.0, gt=0, description="factor rotation sigma = coeff / sqrt(inliers)")
 
 
 class LoopSettings(BaseModel):
@@ -72,6 +75,12 @@ class LoopSettings(BaseModel):
     gate_deg: float = Field(20.0, gt=0)
     retract_m: float = Field(0.15, gt=0, description="accepted loops disagreeing more are retracted")
     retract_deg: float = Field(5.0, gt=0)
+    proximity: bool = Field(True, description="also verify old keyframes near the current pose estimate")
+    proximity_m: float = Field(0.4, gt=0)
+    proximity_deg: float = Field(25.0, gt=0)
+    proximity_k: int = Field(2, ge=1)
+    sigma_floor_m: float = Field(0.01, gt=0, description="loop factor translation sigma at least")
+    sigma_floor_deg: float = Field(0.5, gt=0)
 
 
 class GraphSettings(BaseModel):

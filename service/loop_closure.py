@@ -40,6 +40,10 @@ class LoopConfig:
     retract_deg: float = 5.0
     sigma_floor_m: float = 0.01
     sigma_floor_deg: float = 0.5
+    proximity: bool = True
+    proximity_m: float = 0.4
+    proximity_deg: float = 25.0
+    proximity_k: int = 2
 
 
 @dataclass
@@ -54,7 +58,7 @@ class KeyframeEntry:
 
 @dataclass
 class LoopCloser:
-    """Appearance candidates + geometric verification for one robot's keyframes."""
+    """Candidates (appearance, and geometric proximity in the current estimate) + geometric verification."""
 
     graph: PoseGraph
     estimator: RelativePoseEstimator
@@ -66,8 +70,10 @@ class LoopCloser:
         self.places = PlaceIndex()
         self.keyframes: dict[int, KeyframeEntry] = {}
         c = self.config
-        self.verify_config = OdometryConfig(min_matches=c.min_inliers, min_inliers=c.min_inliers,
-                                            max_residual_px=c.max_residual_px)
+        base = self.estimator.config
+        self.verify_config = OdometryConfig(base.n_features, base.ratio, c.min_inliers, c.min_inliers, base.ransac_px,
+                                            c.max_residual_px, sigma_m_coeff=base.sigma_m_coeff,
+                                            sigma_deg_coeff=base.sigma_deg_coeff)
 
     @property
     def n_accepted(self) -> int:
@@ -81,9 +87,14 @@ class LoopCloser:
         """Store the keyframe, try its candidates, and return the new loop records."""
         descriptor = global_descriptor(rgb)
         c = self.config
-        new = []
-        for cand in self.places.query(descriptor, entry.timestamp, c.min_gap_s, c.top_k, c.min_similarity):
-            new.append(self._try(self.keyframes[cand.index], entry, "appearance", cand.similarity))
+        new: list[dict[str, Any]] = []
+        candidates = [(cand.index, "appearance", cand.similarity) for cand in
+                      self.places.query(descriptor, entry.timestamp, c.min_gap_s, c.top_k, c.min_similarity)]
+        if c.proximity:
+            tried = {i for i, _, _ in candidates}
+            candidates += [(i, "proximity", float("nan")) for i in self._nearby(entry) if i not in tried]
+        for index, source, similarity in candidates:
+            new.append(self._try(self.keyframes[index], entry, source, similarity))
             if new[-1]["accepted"]:
                 break  # one loop per keyframe is enough to pull the graph
         self.places.add(entry.index, entry.timestamp, descriptor)
@@ -93,11 +104,30 @@ class LoopCloser:
             self._recheck()
         return new
 
+    def _nearby(self, entry: KeyframeEntry) -> list[int]:
+        """Old keyframes whose current estimate lies near the new one's (geometric candidates)."""
+        c = self.config
+        old = [k for k, e in self.keyframes.items() if e.timestamp <= entry.timestamp - c.min_gap_s]
+        if not old:
+            return []
+        poses = self.graph.poses()
+        here = poses[entry.index]
+        dist = np.linalg.norm(poses[old, :3, 3] - here[:3, 3], axis=1)
+        near = []
+        for i in np.argsort(dist):
+            if dist[i] > c.proximity_m or len(near) >= c.proximity_k:
+                break
+            _, angle = motion_magnitude(relative(poses[old[i]], here))
+            if math.degrees(angle) <= c.proximity_deg:
+                near.append(old[i])
+        return near
+
     def _try(self, match: KeyframeEntry, query: KeyframeEntry, source: str, similarity: float) -> dict[str, Any]:
         record: dict[str, Any] = {
             "query_t": query.timestamp, "match_t": match.timestamp, "query_frame": query.frame,
             "match_frame": match.frame, "query_keyframe": query.index, "match_keyframe": match.index,
-            "source": source, "similarity": round(similarity, 4), "accepted": False}
+            "source": source, "similarity": None if math.isnan(similarity) else round(similarity, 4),
+            "accepted": False}
         try:
             rel = self.estimator.estimate(match.features, query.features, self.verify_config)
         except Rejected as exc:

@@ -112,7 +112,9 @@ class ServiceNode:
             t1 = time.monotonic()
             self.stats.time("decode", t1 - t0)
             with self._lock:
+                self.pipeline.timings.clear()
                 record = self.pipeline.process(frame)
+                stage_times = dict(self.pipeline.timings)
             t2 = time.monotonic()
         except FrameRejected as exc:
             self.stats.count_rejected(exc.reason.value)
@@ -122,6 +124,8 @@ class ServiceNode:
             self.stats.count_error("solver")
             return
         self.stats.time("graph", t2 - t1)
+        for stage, seconds in stage_times.items():
+            self.stats.time(stage, seconds)
         self.stats.time("ingest_to_graph", t2 - received)
         self.stats.count_processed(record.is_keyframe)
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,16 +53,18 @@ class Pipeline:
                                              g.prior_sigma_deg, g.relinearize_threshold, g.relinearize_skip))
         k = settings.keyframes
         self.policy = KeyframePolicy(k.translation_m, k.rotation_deg, k.max_interval, k.min_inliers,
-                                     settings.odometry.lost_sigma_scale)
+                                     settings.odometry.lost_sigma_scale, settings.odometry.icp)
         o = settings.odometry
         self.odometry_config = OdometryConfig(o.n_features, o.ratio, o.min_matches, o.min_inliers, o.ransac_px,
-                                              o.max_residual_px)
+                                              o.max_residual_px, sigma_m_coeff=o.sigma_m_coeff,
+                                              sigma_deg_coeff=o.sigma_deg_coeff)
         self.frontend: ExternalOdometry | VisualOdometry | None = None
         self.loops: LoopCloser | None = None
         self._extractor: FeatureExtractor | None = None
         self.records: list[FrameRecord] = []
         self._kf_odometry: list[np.ndarray] = []
         self.tracking_lost = 0
+        self.timings: dict[str, float] = {}
 
     @property
     def last_timestamp(self) -> float:
@@ -72,7 +75,9 @@ class Pipeline:
         self._check(frame)
         if self.frontend is None:
             self._start(frame)
+        t0 = time.perf_counter()
         step = self.frontend.track(frame)
+        self.timings["frontend"] = time.perf_counter() - t0
         self.tracking_lost += int(step.lost)
         if step.keyframe:
             record = self._add_keyframe(frame, step)
@@ -93,7 +98,10 @@ class Pipeline:
         lc = self.settings.loops
         if lc.source in ("appearance", "both"):
             config = LoopConfig(lc.source, lc.min_gap_s, lc.top_k, lc.min_similarity, lc.min_inliers,
-                                lc.max_residual_px, lc.gate_m, lc.gate_deg, lc.retract_m, lc.retract_deg)
+                                lc.max_residual_px, lc.gate_m, lc.gate_deg, lc.retract_m, lc.retract_deg,
+                                proximity=lc.proximity, proximity_m=lc.proximity_m, proximity_deg=lc.proximity_deg,
+                                proximity_k=lc.proximity_k, sigma_floor_m=lc.sigma_floor_m,
+                                sigma_floor_deg=lc.sigma_floor_deg)
             self.loops = LoopCloser(self.graph, RelativePoseEstimator(frame.camera, self.odometry_config), config)
             self._extractor = FeatureExtractor(frame.camera, self.odometry_config)
 
@@ -114,8 +122,10 @@ class Pipeline:
             kf = self.graph.add_keyframe(step.factor, step.sigma_m, step.sigma_deg)
         self._kf_odometry.append(step.pose)
         if self.loops is not None:
+            t0 = time.perf_counter()
             features = step.features if step.features is not None else self._extractor.extract(frame)
             self.loops.add_keyframe(KeyframeEntry(kf, frame.timestamp, frame.seq, features), frame.rgb)
+            self.timings["loop_closure"] = time.perf_counter() - t0
         return FrameRecord(frame.timestamp, frame.seq, kf, True, step.pose, np.eye(4))
 
     def trajectory(self) -> Trajectory:

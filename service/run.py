@@ -14,20 +14,20 @@ from service.config import Settings
 from service.node import ServiceNode
 from service.outputs import write_outputs
 from service.replay import Replayer, frame_publisher
-from service.sources import open_dataset
+from service.sources import Dataset, open_dataset
 from service.zenoh_session import open_session
 
 log = logging.getLogger(__name__)
 
 
-def run_dataset(spec: str, out: Path, settings: Settings, max_frames: int | None = None,
+def run_dataset(spec: str | Dataset, out: Path, settings: Settings, max_frames: int | None = None,
                 camera_overrides: dict[str, float] | None = None, progress: bool = True) -> dict[str, Any]:
     """Replay ``spec`` into a service on one embedded zenoh session and write the outputs into ``out``.
 
     The same ServiceNode as ``serve`` receives the frames through a zenoh subscriber; the replay waits for
     room in the ingest queue instead of letting frames drop.
     """
-    dataset = open_dataset(spec, camera_overrides)
+    dataset = open_dataset(spec, camera_overrides) if isinstance(spec, str) else spec
     session = open_session(settings.zenoh, "server", embedded=True)
     node = ServiceNode(settings, session)
     try:
@@ -62,6 +62,8 @@ def _summary(name: str, frames: int, elapsed: float, status: dict[str, Any]) -> 
         "poses": status["poses"],
         "objects_by_class": dict(Counter()),
         "loop_closures": status["loop_closures"]["accepted"],
+        "loop_candidates": status["loop_closures"]["accepted"] + status["loop_closures"]["rejected"],
+        "tracking_lost": status.get("tracking_lost", 0),
         "seconds": round(elapsed, 3),
         "throughput_fps": round(status["frames_processed"] / elapsed, 2) if elapsed > 0 else 0.0,
         "latency": status["latency"],

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from service.sources.base import Dataset, DatasetError, ObjectTruth, Trajectory
+from service.sources.base import Dataset, DatasetError, ObjectTruth, Trajectory, WithoutOdometry
 
-__all__ = ["Dataset", "DatasetError", "ObjectTruth", "Trajectory", "open_dataset"]
+__all__ = ["Dataset", "DatasetError", "ObjectTruth", "Trajectory", "WithoutOdometry", "open_dataset"]
 
 
 def open_dataset(spec: str, camera_overrides: dict[str, float] | None = None) -> Dataset:

@@ -83,3 +83,39 @@ class Dataset(ABC):
     def instance_mask(self, index: int) -> np.ndarray | None:
         """Per-pixel instance ids (0 = none) of frame ``index``, matching ``objects`` ids."""
         return None
+
+
+class WithoutOdometry(Dataset):
+    """A view of a dataset whose frames carry no odometry, so the service runs its own front end."""
+
+    def __init__(self, inner: Dataset):
+        self.inner = inner
+        self.name = inner.name
+        self.camera = inner.camera
+
+    def __len__(self) -> int:
+        return len(self.inner)
+
+    def frame(self, index: int):
+        f = self.inner.frame(index)
+        f.odometry = None
+        return f
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self.inner.timestamps
+
+    @property
+    def ground_truth(self) -> Trajectory | None:
+        return self.inner.ground_truth
+
+    @property
+    def objects(self) -> list[ObjectTruth] | None:
+        return self.inner.objects
+
+    @property
+    def loops(self) -> list[tuple[int, int]] | None:
+        return self.inner.loops
+
+    def instance_mask(self, index: int) -> np.ndarray | None:
+        return self.inner.instance_mask(index)

@@ -1,0 +1,122 @@
+"""Projective point-to-plane ICP between two depth images (the KinectFusion registration step).
+
+Used to refine feature-based relative poses at keyframes and loop closures: it works in the depth
+camera's own frame, so it does not depend on the colour-to-depth calibration.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from perception.frame import Intrinsics
+
+
+@dataclass(frozen=True)
+class IcpResult:
+    """Refined ``T_dst_src``, point-to-plane RMS residual (m), inlier fraction and the 6x6 information."""
+
+    T: np.ndarray
+    rmse_m: float
+    inlier_fraction: float
+    inliers: int
+    information: np.ndarray
+
+
+def vertex_map(depth_m: np.ndarray, K: Intrinsics) -> np.ndarray:
+    """(H, W, 3) camera-frame points, NaN where depth is invalid."""
+    h, w = depth_m.shape
+    u = np.arange(w, dtype=np.float32)[None, :]
+    v = np.arange(h, dtype=np.float32)[:, None]
+    z = np.where(depth_m > 0, depth_m, np.nan).astype(np.float32)
+    return np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], axis=-1)
+
+
+def smooth_depth(depth_m: np.ndarray, diameter: int = 7, sigma_depth_m: float = 0.04,
+                 sigma_px: float = 3.0) -> np.ndarray:
+    """Edge-preserving bilateral filter of a depth image (KinectFusion's first step); NaN stays invalid."""
+    valid = np.isfinite(depth_m) & (depth_m > 0)
+    d = np.where(valid, depth_m, 0.0).astype(np.float32)
+    out = cv2.bilateralFilter(d, diameter, sigma_depth_m, sigma_px)
+    return np.where(valid, out, np.nan)
+
+
+def normal_map(vertices: np.ndarray) -> np.ndarray:
+    """Unit normals from central differences of the vertex map (NaN at borders and holes)."""
+    dx = np.full_like(vertices, np.nan)
+    dy = np.full_like(vertices, np.nan)
+    dx[:, 1:-1] = vertices[:, 2:] - vertices[:, :-2]
+    dy[1:-1] = vertices[2:] - vertices[:-2]
+    n = np.cross(dx, dy)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = n / norm
+    n[(norm[..., 0] < 1e-9)] = np.nan
+    return n
+
+
+def downsample(depth_m: np.ndarray, K: Intrinsics, factor: int) -> tuple[np.ndarray, Intrinsics]:
+    """Every ``factor``-th pixel of a depth image and the matching intrinsics."""
+    if factor == 1:
+        return depth_m, K
+    return depth_m[::factor, ::factor], Intrinsics(K.fx / factor, K.fy / factor, (K.cx - (factor - 1) / 2) / factor,
+                                                   (K.cy - (factor - 1) / 2) / factor)
+
+
+def icp_refine(src_depth: np.ndarray, dst_depth: np.ndarray, K: Intrinsics, T_init: np.ndarray,
+               level: int = 2, step: int = 3, iterations: int = 10, max_dist: tuple[float, float] = (0.08, 0.02),
+               min_inliers: int = 300) -> IcpResult | None:
+    """Refine ``T_dst_src`` (maps src camera points into the dst camera) by point-to-plane ICP.
+
+    Both images are used at 1/``level`` resolution, the source further subsampled by ``step``.
+    Returns None when too few correspondences survive (degenerate geometry or a bad initial guess).
+    """
+    src_depth, _ = downsample(src_depth, K, level)
+    dst_depth, K = downsample(dst_depth, K, level)
+    src_depth, dst_depth = smooth_depth(src_depth, 5), smooth_depth(dst_depth, 5)
+    src = vertex_map(src_depth, K)[::step, ::step].reshape(-1, 3)
+    src = src[np.isfinite(src[:, 2])]
+    dst_v = vertex_map(dst_depth, K)
+    dst_n = normal_map(dst_v)
+    h, w = dst_depth.shape
+    T = T_init.copy()
+    A = np.zeros((0, 6))
+    residual = np.zeros(0)
+    for it in range(iterations):
+        gate = max_dist[0] + (max_dist[1] - max_dist[0]) * it / max(1, iterations - 1)
+        p = src @ T[:3, :3].T + T[:3, 3]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = np.round(p[:, 0] / p[:, 2] * K.fx + K.cx)
+            v = np.round(p[:, 1] / p[:, 2] * K.fy + K.cy)
+        ok = (p[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        idx = v[ok].astype(int) * w + u[ok].astype(int)
+        q = dst_v.reshape(-1, 3)[idx]
+        n = dst_n.reshape(-1, 3)[idx]
+        pp = p[ok]
+        r = np.einsum("ij,ij->i", pp - q, n)
+        good = np.isfinite(r) & (np.linalg.norm(pp - q, axis=1) < gate)
+        if good.sum() < min_inliers:
+            return None
+        pp, n, residual = pp[good], n[good], r[good]
+        A = np.hstack([np.cross(pp, n), n])
+        xi = np.linalg.solve(A.T @ A + 1e-9 * np.eye(6), -A.T @ residual)
+        T = _exp_se3(xi) @ T
+        if np.linalg.norm(xi) < 1e-6:
+            break
+    rmse = float(np.sqrt(np.mean(residual**2)))
+    info = A.T @ A / max(rmse, 1e-3) ** 2
+    return IcpResult(T, rmse, float(len(residual) / max(1, len(src))), len(residual), info)
+
+
+def _exp_se3(xi: np.ndarray) -> np.ndarray:
+    """Small-motion update: rotation vector xi[:3] (Rodrigues), translation xi[3:]."""
+    theta = np.linalg.norm(xi[:3])
+    T = np.eye(4)
+    if theta > 1e-12:
+        k = xi[:3] / theta
+        Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+        T[:3, :3] = np.eye(3) + np.sin(theta) * Kx + (1 - np.cos(theta)) * Kx @ Kx
+    T[:3, 3] = xi[3:]
+    return T

@@ -1,0 +1,71 @@
+"""Loop-closure verification: a true revisit is accepted, a same-looking place at the wrong pose is not."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from graph.geometry import relative
+from graph.pose_graph import PoseGraph
+from perception.odometry import FeatureExtractor, RelativePoseEstimator
+from perception.place_recognition import PlaceIndex, global_descriptor
+from service.loop_closure import KeyframeEntry, LoopCloser, LoopConfig
+from service.sources import open_dataset
+
+
+@pytest.fixture(scope="module")
+def room():
+    return open_dataset("synthetic:room?seed=0&frames=300")
+
+
+def _closer(room, i: int, j: int, claimed_offset_m: float = 0.0) -> tuple[LoopCloser, list[dict]]:
+    """Keyframes i and j in a graph whose relative pose is the truth plus an offset; returns j's records."""
+    gt = room.ground_truth.poses
+    graph = PoseGraph()
+    graph.add_first(gt[i])
+    rel = relative(gt[i], gt[j])
+    rel[:3, 3] += [claimed_offset_m, 0.0, 0.0]
+    graph.add_keyframe(rel)
+    fe = FeatureExtractor(room.camera)
+    config = LoopConfig(min_gap_s=0.0, min_similarity=-1.0, proximity=False)
+    closer = LoopCloser(graph, RelativePoseEstimator(room.camera), config)
+    fi, fj = room.frame(i), room.frame(j)
+    closer.add_keyframe(KeyframeEntry(0, fi.timestamp, i, fe.extract(fi)), fi.rgb)
+    return closer, closer.add_keyframe(KeyframeEntry(1, fj.timestamp, j, fe.extract(fj)), fj.rgb)
+
+
+def test_true_revisit_is_verified_and_becomes_a_factor(room):
+    i, j = room.loops[len(room.loops) // 2]
+    closer, records = _closer(room, i, j)
+    assert len(records) == 1
+    r = records[0]
+    assert r["accepted"] and r["reason"] == "verified" and r["source"] == "appearance"
+    assert (r["match_frame"], r["query_frame"]) == (i, j) and r["inliers"] >= 40
+    assert r["translation_diff_m"] < 0.02 and closer.graph.num_factors == 3
+
+
+def test_same_place_at_a_contradicting_pose_is_rejected_as_inconsistent(room):
+    i, j = room.loops[len(room.loops) // 2]
+    closer, records = _closer(room, i, j, claimed_offset_m=2.0)
+    assert not records[0]["accepted"] and records[0]["reason"] == "inconsistent_with_odometry"
+    assert closer.graph.num_factors == 2  # nothing entered the graph
+
+
+def test_different_places_are_rejected_by_geometry(room):
+    gt = room.ground_truth.poses
+    dist = np.linalg.norm(gt[:, :3, 3] - gt[0, :3, 3], axis=1)
+    far = int(np.argmax(dist))
+    _, records = _closer(room, 0, far)
+    assert not records[0]["accepted"]
+    assert records[0]["reason"] in ("too_few_matches", "too_few_inliers")
+
+
+def test_place_index_respects_time_gap_and_ranks_by_similarity(room):
+    index = PlaceIndex(capacity=2)
+    for k in range(5):
+        index.add(k, float(k), global_descriptor(room.frame(k * 10).rgb))
+    query = global_descriptor(room.frame(0).rgb)
+    best = index.query(query, timestamp=10.0, min_gap_s=0.0, top_k=2, min_similarity=-1.0)
+    assert best[0].index == 0 and best[0].similarity == pytest.approx(1.0, abs=1e-5)
+    assert index.query(query, timestamp=2.5, min_gap_s=2.0, top_k=5, min_similarity=-1.0)[0].index == 0
+    assert all(c.index == 0 for c in index.query(query, timestamp=0.5, min_gap_s=0.0, top_k=5, min_similarity=-1.0))
