@@ -211,6 +211,16 @@ def bench_loops(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
     run_slam_bench(console, dataset, write)
 
 
+@bench_app.command("detector")
+def bench_detector(dataset: Annotated[str, typer.Option("--dataset", help="dataset directory")],
+                   every: Annotated[int, typer.Option("--every", help="every N-th frame")] = 10,
+                   write: WriteOpt = None) -> None:
+    """Detector speed and detections per class on real frames; saves contact sheets in docs/."""
+    from service.bench.detector import run_detector_bench
+
+    run_detector_bench(console, dataset, every, write)
+
+
 def main() -> None:
     """Console entry point: domain errors become one line on stderr and exit code 1."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")

@@ -83,6 +83,18 @@ class LoopSettings(BaseModel):
     sigma_floor_deg: float = Field(0.5, gt=0)
 
 
+class DetectorSettings(BaseModel):
+    """The ONNX object detector (SPEC 6.1), used on keyframes whose frames carry no detections."""
+
+    kind: Literal["centernet", "nanodet", "yolo"] = "centernet"
+    model: Path | None = Field(None, description="ONNX file; empty = the shipped model of `kind` in models/")
+    threads: int = Field(2, ge=1)
+    score_threshold: float | None = Field(None, ge=0, le=1, description="empty = tuned default of `kind`")
+    class_thresholds: dict[str, float] | None = Field(None, description="per-class minimum scores")
+    nms_iou: float = Field(0.5, gt=0, le=1)
+    max_detections: int = Field(50, ge=1)
+
+
 class GraphSettings(BaseModel):
     """iSAM2 pose graph noise models and solver parameters."""
 
@@ -116,6 +128,7 @@ class Settings(BaseSettings):
     keyframes: KeyframeSettings = Field(default_factory=KeyframeSettings)
     odometry: OdometrySettings = Field(default_factory=OdometrySettings)
     loops: LoopSettings = Field(default_factory=LoopSettings)
+    detector: DetectorSettings = Field(default_factory=DetectorSettings)
     graph: GraphSettings = Field(default_factory=GraphSettings)
     camera: CameraDefaults = Field(default_factory=CameraDefaults)
 
