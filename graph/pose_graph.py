@@ -80,6 +80,13 @@ class PoseGraph:
         self._update(graph, values)
         return k
 
+    def add_between(self, k_a: int, k_b: int, T_a_b: np.ndarray, sigma_m: float, sigma_deg: float) -> int:
+        """An extra Gaussian between-factor of existing keyframes (e.g. a skip edge of the odometry)."""
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(gtsam.BetweenFactorPose3(X(k_a), X(k_b), gtsam.Pose3(T_a_b), pose_noise(sigma_m, sigma_deg)))
+        result = self._update(graph, gtsam.Values())
+        return int(result.getNewFactorsIndices()[0])
+
     def add_loop(self, k_a: int, k_b: int, T_a_b: np.ndarray, sigma_m: float, sigma_deg: float,
                  robust_k: float = 3.0, iterations: int = 10) -> int:
         """Add a loop-closure between-factor (pose of b in a) under a Huber kernel; returns its factor index.

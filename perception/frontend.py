@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -32,6 +32,7 @@ class KeyframePolicy:
     icp: bool = True
     icp_max_correction_m: float = 0.03
     icp_max_correction_deg: float = 2.0
+    skip_edges: int = 2
 
 
 @dataclass
@@ -46,6 +47,7 @@ class Step:
     lost: bool = False
     inliers: int = 0
     features: Features | None = None
+    extra: list[tuple[int, np.ndarray, float, float]] = field(default_factory=list)
 
 
 class ExternalOdometry:
@@ -86,6 +88,7 @@ class VisualOdometry:
         self._kf_pose: np.ndarray | None = None
         self._kf_features: Features | None = None
         self._kf_depth: np.ndarray | None = None
+        self._history: list[tuple[Features, np.ndarray]] = []  # older keyframes, newest last
         self.icp_used = 0
         self._last_pose = np.eye(4)
         self._since = 0
@@ -107,17 +110,29 @@ class VisualOdometry:
         p = self.policy
         if (trans >= p.translation_m or rot >= math.radians(p.rotation_deg) or self._since >= p.max_interval
                 or rel.inliers < p.min_inliers):
-            T = self._refine(rel.T_a_b, depth)
+            T = self._refine(rel.T_a_b, depth, self._kf_depth)
             pose = self._kf_pose @ T
-            step = Step(pose, True, T, rel.sigma_m, rel.sigma_deg, inliers=rel.inliers, features=features)
+            step = Step(pose, True, T, rel.sigma_m, rel.sigma_deg, inliers=rel.inliers, features=features,
+                        extra=self._skip_edges(features, depth))
             return self._new_keyframe(pose, features, depth, step)
         return Step(pose, False, inliers=rel.inliers, features=features)
 
-    def _refine(self, T_pnp: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    def _skip_edges(self, features: Features, depth: np.ndarray) -> list[tuple[int, np.ndarray, float, float]]:
+        """Extra factors to the keyframes before the previous one: (how many back, T_old_new, sigmas)."""
+        edges = []
+        for back, (old_features, old_depth) in enumerate(reversed(self._history), start=2):
+            try:
+                rel = self.estimator.estimate(old_features, features)
+            except Rejected:
+                continue
+            edges.append((back, self._refine(rel.T_a_b, depth, old_depth), rel.sigma_m, rel.sigma_deg))
+        return edges
+
+    def _refine(self, T_pnp: np.ndarray, depth: np.ndarray, ref_depth: np.ndarray) -> np.ndarray:
         """Depth ICP from the PnP estimate, kept only when it corrects by a plausible amount."""
         if not self.policy.icp:
             return T_pnp
-        result = icp_refine(depth, self._kf_depth, self.camera.depth, T_pnp)
+        result = icp_refine(depth, ref_depth, self.camera.depth, T_pnp)
         if result is None:
             return T_pnp
         dt, dr = motion_magnitude(relative(T_pnp, result.T))
@@ -136,6 +151,11 @@ class VisualOdometry:
         return self._new_keyframe(pose, features, depth, step)
 
     def _new_keyframe(self, pose: np.ndarray, features: Features, depth: np.ndarray, step: Step) -> Step:
+        if self._kf_features is not None and not step.lost:
+            self._history = (self._history + [(self._kf_features, self._kf_depth)])[-(self.policy.skip_edges - 1):] \
+                if self.policy.skip_edges > 1 else []
+        elif step.lost:
+            self._history = []
         self._kf_pose, self._kf_features, self._kf_depth = pose, features, depth
         self._since, self._last_pose = 0, pose
         return step

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from graph.geometry import motion_magnitude, relative
+from graph.geometry import motion_magnitude, pose_to_tum, relative
 from graph.pose_graph import PoseGraph
 from perception.odometry import Features, OdometryConfig, Rejected, RelativePoseEstimator
 from perception.place_recognition import PlaceIndex, global_descriptor
@@ -29,7 +29,7 @@ class LoopConfig:
     """Candidate search, verification thresholds and the consistency gate."""
 
     source: str = "appearance"
-    min_gap_s: float = 10.0
+    min_gap_s: float = 5.0
     top_k: int = 3
     min_similarity: float = 0.5
     min_inliers: int = 40
@@ -41,7 +41,9 @@ class LoopConfig:
     sigma_floor_m: float = 0.01
     sigma_floor_deg: float = 0.5
     proximity: bool = True
-    proximity_m: float = 0.4
+    proximity_m: float = 0.3
+    max_loop_m: float = 0.25
+    max_loop_deg: float = 17.0
     proximity_deg: float = 25.0
     proximity_k: int = 2
 
@@ -134,6 +136,12 @@ class LoopCloser:
             record.update(reason=exc.reason, matches=exc.matches, inliers=exc.inliers)
             return record
         record.update(matches=rel.matches, inliers=rel.inliers, residual_px=round(rel.residual_px, 3))
+        dist, angle = motion_magnitude(rel.T_a_b)
+        record["relative_pose"] = [round(float(v), 6) for v in pose_to_tum(rel.T_a_b)]
+        record.update(distance_m=round(dist, 4), angle_deg=round(math.degrees(angle), 3))
+        if dist > self.config.max_loop_m or math.degrees(angle) > self.config.max_loop_deg:
+            record["reason"] = "viewpoints_too_far_apart"
+            return record
         estimate = relative(self.graph.pose(match.index), self.graph.pose(query.index))
         dt, dr = motion_magnitude(relative(estimate, rel.T_a_b))
         record.update(translation_diff_m=round(dt, 4), rotation_diff_deg=round(math.degrees(dr), 3))

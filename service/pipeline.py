@@ -100,7 +100,8 @@ class Pipeline:
             config = LoopConfig(lc.source, lc.min_gap_s, lc.top_k, lc.min_similarity, lc.min_inliers,
                                 lc.max_residual_px, lc.gate_m, lc.gate_deg, lc.retract_m, lc.retract_deg,
                                 proximity=lc.proximity, proximity_m=lc.proximity_m, proximity_deg=lc.proximity_deg,
-                                proximity_k=lc.proximity_k, sigma_floor_m=lc.sigma_floor_m,
+                                proximity_k=lc.proximity_k, max_loop_m=lc.max_loop_m, max_loop_deg=lc.max_loop_deg,
+                                sigma_floor_m=lc.sigma_floor_m,
                                 sigma_floor_deg=lc.sigma_floor_deg)
             self.loops = LoopCloser(self.graph, RelativePoseEstimator(frame.camera, self.odometry_config), config)
             self._extractor = FeatureExtractor(frame.camera, self.odometry_config)
@@ -120,6 +121,9 @@ class Pipeline:
             kf = self.graph.add_first(step.pose)
         else:
             kf = self.graph.add_keyframe(step.factor, step.sigma_m, step.sigma_deg)
+            for back, T, sigma_m, sigma_deg in step.extra:
+                if kf - back >= 0:
+                    self.graph.add_between(kf - back, kf, T, sigma_m, sigma_deg)
         self._kf_odometry.append(step.pose)
         if self.loops is not None:
             t0 = time.perf_counter()
