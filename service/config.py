@@ -88,6 +88,7 @@ class LoopSettings(BaseModel):
 class DetectorSettings(BaseModel):
     """The ONNX object detector (SPEC 6.1), used on keyframes whose frames carry no detections."""
 
+    enabled: bool = Field(True, description="run on keyframes whose frames carry no detections")
     kind: Literal["centernet", "nanodet", "yolo"] = "centernet"
     model: Path | None = Field(None, description="ONNX file; empty = the shipped model of `kind` in models/")
     threads: int = Field(2, ge=1)

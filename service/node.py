@@ -148,7 +148,8 @@ class ServiceNode:
         with self._lock:
             graph = self.pipeline.graph
             snap.update(keyframes=graph.num_keyframes, poses=graph.num_keyframes, factors=graph.num_factors,
-                        tracking_lost=self.pipeline.tracking_lost, loop_closures=self._loop_counts())
+                        tracking_lost=self.pipeline.tracking_lost, loop_closures=self._loop_counts(),
+                        keyframe_detections_by_class=dict(self.pipeline.detections_by_class))
         snap.update(
             robot=self.settings.robot,
             protocol_version=VERSION,

@@ -8,6 +8,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,6 +66,9 @@ class Pipeline:
         self._kf_odometry: list[np.ndarray] = []
         self.tracking_lost = 0
         self.timings: dict[str, float] = {}
+        self._detector = None
+        self.keyframe_detections: dict[int, list] = {}
+        self.detections_by_class: Counter[str] = Counter()
 
     @property
     def last_timestamp(self) -> float:
@@ -125,12 +129,34 @@ class Pipeline:
                 if kf - back >= 0:
                     self.graph.add_between(kf - back, kf, T, sigma_m, sigma_deg)
         self._kf_odometry.append(step.pose)
+        self._detect(kf, frame)
         if self.loops is not None:
             t0 = time.perf_counter()
             features = step.features if step.features is not None else self._extractor.extract(frame)
             self.loops.add_keyframe(KeyframeEntry(kf, frame.timestamp, frame.seq, features), frame.rgb)
             self.timings["loop_closure"] = time.perf_counter() - t0
         return FrameRecord(frame.timestamp, frame.seq, kf, True, step.pose, np.eye(4))
+
+    def _detect(self, kf: int, frame: Frame) -> None:
+        """Keyframe detections: the frame's own, else the ONNX detector's (SPEC 6.1)."""
+        detections = frame.detections
+        if detections is None and self.settings.detector.enabled:
+            t0 = time.perf_counter()
+            detections = self._get_detector().detect(frame.rgb)
+            self.timings["detector"] = time.perf_counter() - t0
+        self.keyframe_detections[kf] = detections or []
+        self.detections_by_class.update(d.label for d in self.keyframe_detections[kf])
+
+    def _get_detector(self):
+        if self._detector is None:
+            from perception.detector import Detector, DetectorConfig
+
+            d = self.settings.detector
+            self._detector = Detector(DetectorConfig(model=d.model, kind=d.kind, threads=d.threads,
+                                                     score_threshold=d.score_threshold,
+                                                     class_thresholds=d.class_thresholds, nms_iou=d.nms_iou,
+                                                     max_detections=d.max_detections))
+        return self._detector
 
     def trajectory(self) -> Trajectory:
         """Optimised poses of every processed frame (keyframe estimate composed with its offset)."""

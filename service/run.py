@@ -61,6 +61,7 @@ def _summary(name: str, frames: int, elapsed: float, status: dict[str, Any]) -> 
         "keyframes": status["keyframes"],
         "poses": status["poses"],
         "objects_by_class": dict(Counter()),
+        "keyframe_detections_by_class": status.get("keyframe_detections_by_class", {}),
         "loop_closures": status["loop_closures"]["accepted"],
         "loop_candidates": status["loop_closures"]["accepted"] + status["loop_closures"]["rejected"],
         "tracking_lost": status.get("tracking_lost", 0),

@@ -1,0 +1,50 @@
+"""The pipeline: front-end choice, keyframes, temporal checks, and detections on keyframes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from service.config import load_settings
+from service.pipeline import Pipeline
+from service.protocol import FrameRejected, Reason
+from service.sources import open_dataset
+from tests.conftest import REDKITCHEN, make_frame, requires_redkitchen
+
+
+def test_stream_with_odometry_reproduces_it_and_rejects_bad_timestamps():
+    p = Pipeline(load_settings(None, {"loops": {"source": "off"}}))
+    for i in range(20):
+        p.process(make_frame(t=1.0 + i, seq=i))
+    traj = p.trajectory()
+    np.testing.assert_allclose(traj.poses[:, 0, 3], 0.1 * (1.0 + np.arange(20)), atol=1e-9)
+    for t, reason in ((20.0, Reason.DUPLICATE_TIMESTAMP), (3.0, Reason.OUT_OF_ORDER)):
+        with pytest.raises(FrameRejected) as info:
+            p.process(make_frame(t=t))
+        assert info.value.reason is reason
+    missing = make_frame(t=30.0)
+    missing.odometry = None
+    with pytest.raises(FrameRejected) as info:
+        p.process(missing)
+    assert info.value.reason is Reason.NO_ODOMETRY
+    empty = make_frame(t=31.0)
+    empty.depth[:] = 0
+    with pytest.raises(FrameRejected) as info:
+        p.process(empty)
+    assert info.value.reason is Reason.EMPTY_DEPTH
+    assert len(p.records) == 20
+
+
+def test_provided_detections_bypass_the_detector():
+    p = Pipeline(load_settings(None, {"loops": {"source": "off"}}))
+    p.process(make_frame(t=1.0))
+    assert p._detector is None and p.detections_by_class == {"cup": 1}
+
+
+@requires_redkitchen
+def test_keyframes_without_detections_run_the_onnx_detector():
+    ds = open_dataset(str(REDKITCHEN))
+    p = Pipeline(load_settings(None, {"loops": {"source": "off"}}))
+    p.process(ds.frame(0))
+    assert p._detector is not None and "detector" in p.timings
+    assert {"chair", "cup"} & set(p.detections_by_class)
