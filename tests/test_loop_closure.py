@@ -69,3 +69,22 @@ def test_place_index_respects_time_gap_and_ranks_by_similarity(room):
     assert best[0].index == 0 and best[0].similarity == pytest.approx(1.0, abs=1e-5)
     assert index.query(query, timestamp=2.5, min_gap_s=2.0, top_k=5, min_similarity=-1.0)[0].index == 0
     assert all(c.index == 0 for c in index.query(query, timestamp=0.5, min_gap_s=0.0, top_k=5, min_similarity=-1.0))
+
+
+def test_an_accepted_loop_that_the_graph_contradicts_is_retracted(room):
+    gt = room.ground_truth.poses
+    graph = PoseGraph()
+    graph.add_first(gt[0])
+    for a, b in ((0, 10), (10, 20)):
+        graph.add_keyframe(relative(gt[a], gt[b]), 0.001, 0.05)  # confident odometry
+    closer = LoopCloser(graph, RelativePoseEstimator(room.camera), LoopConfig(retract_m=0.15))
+    wrong = relative(gt[0], gt[20])
+    wrong[:3, 3] += [0.5, 0.0, 0.0]
+    factor = graph.add_loop(0, 2, wrong, 0.05, 2.0)
+    closer.accepted[factor] = (0, 2, wrong)
+    closer.records.append({"factor": factor, "accepted": True, "reason": "verified"})
+    factors = graph.num_factors
+    closer._recheck()
+    assert closer.records[0]["accepted"] is False and closer.records[0]["reason"] == "retracted_inconsistent"
+    assert factor not in closer.accepted and graph.num_factors == factors - 1
+    np.testing.assert_allclose(graph.pose(2), gt[20], atol=1e-3)
