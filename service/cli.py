@@ -211,6 +211,15 @@ def bench_loops(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
     run_slam_bench(console, dataset, write)
 
 
+@bench_app.command("frontends")
+def bench_frontends(dataset: Annotated[str, typer.Option("--dataset", help="dataset with ground truth")],
+                    frames: Annotated[int, typer.Option("--frames")] = 400, write: WriteOpt = None) -> None:
+    """Compare odometry front-end candidates (ORB, ORB + ICP, SIFT) on a real segment."""
+    from service.bench.frontends import run_frontends_bench
+
+    run_frontends_bench(console, dataset, frames, write)
+
+
 @bench_app.command("detector")
 def bench_detector(dataset: Annotated[str, typer.Option("--dataset", help="dataset directory")],
                    every: Annotated[int, typer.Option("--every", help="every N-th frame")] = 10,
