@@ -211,6 +211,27 @@ def bench_loops(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
     run_slam_bench(console, dataset, write)
 
 
+SeedsOpt = Annotated[list[int] | None, typer.Option("--seeds", help="synthetic seeds (repeatable)")]
+
+
+@bench_app.command("association")
+def bench_association(seeds: SeedsOpt = None, frames: Annotated[int, typer.Option("--frames")] = 300,
+                      write: WriteOpt = None) -> None:
+    """NPDA precision/recall on synthetic keyframes, the Table 2.2 grid, ablation and timing."""
+    from service.bench.association import run_association_bench
+
+    run_association_bench(console, seeds or [0, 1, 2], frames, write)
+
+
+@bench_app.command("objects")
+def bench_objects(seeds: SeedsOpt = None, frames: Annotated[int, typer.Option("--frames")] = 300,
+                  write: WriteOpt = None) -> None:
+    """Objects mapped / present, false objects, ground-plane IoU and centroid error on synthetic scenes."""
+    from service.bench.association import run_objects_bench
+
+    run_objects_bench(console, seeds or [0, 1, 2], frames, write)
+
+
 @bench_app.command("frontends")
 def bench_frontends(dataset: Annotated[str, typer.Option("--dataset", help="dataset with ground truth")],
                     frames: Annotated[int, typer.Option("--frames")] = 400, write: WriteOpt = None) -> None:

@@ -16,10 +16,9 @@ from typing import Any
 
 import numpy as np
 from rich.console import Console
-from rich.table import Table
 
 from graph.geometry import motion_magnitude, pose_from_tum, relative
-from service.bench.report import markdown_table, record
+from service.bench.report import markdown_table, record, show_table
 from service.config import load_settings
 from service.run import run_dataset
 from service.sources import Dataset, WithoutOdometry, open_dataset
@@ -106,15 +105,6 @@ def run_slam_bench(console: Console, datasets: list[str] | None, write: Path | N
     return results
 
 
-def _show(console: Console, title: str, header: list[str], rows: list[list[Any]]) -> None:
-    table = Table(title=title)
-    for h in header:
-        table.add_column(h)
-    for row in rows:
-        table.add_row(*map(str, row))
-    console.print(table)
-
-
 def _short(spec: str) -> str:
     return Path(spec).name if not spec.startswith("synthetic:") else spec
 
@@ -125,7 +115,7 @@ def _record_odometry(console: Console, results: list[dict], write: Path | None) 
     rows = [[_short(r["dataset"]), r["frames"], r["keyframes"], f"{r['ate_odometry_cm']:.2f}",
              f"{r['ate_loops_cm']:.2f}", "<= 3 cm (7-Scenes, with loops)", f"{r['rpe_cm']:.3f} / {r['rpe_deg']:.3f}",
              f"{r['frontend_fps']:.1f}", f"{r['frontend_p95_ms']:.1f}", r["tracking_lost"]] for r in results]
-    _show(console, "RGB-D odometry and loop closure: trajectory error", header, rows)
+    show_table(console, "RGB-D odometry and loop closure: trajectory error", header, rows)
     notes = ("Frames are replayed without odometry, so the visual front end (ORB + depth, PnP-RANSAC, LM "
              "refinement, depth ICP at keyframes) runs; ATE is RMSE after SE(3) Umeyama alignment over every "
              "frame; RPE is between consecutive frames. Front-end rate is 1 / median per-frame front-end time.")
@@ -139,7 +129,7 @@ def _record_loops(console: Console, results: list[dict], write: Path | None) -> 
     rows = [[_short(r["dataset"]), r["candidates"], r["true"], r["accepted"], r["false_accepted"],
              r["true_rejected"], r["windows"], r["wrong_geometry"], r["median_error"], ", ".join(r["sources"])]
             for r in results]
-    _show(console, "Loop-closure candidates judged against ground truth", header, rows)
+    show_table(console, "Loop-closure candidates judged against ground truth", header, rows)
     notes = ("A candidate is true when the ground-truth poses of its two frames are within 0.3 m and 20 deg. "
              "7-Scenes revisit windows: frames 146-193 with 636-669, and 221-290 with 945-999. 'Wrong geometry': "
              "the verified relative pose differs from the ground-truth one by more than 10 cm or 5 deg. "
