@@ -211,25 +211,32 @@ def bench_loops(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
     run_slam_bench(console, dataset, write)
 
 
-SeedsOpt = Annotated[list[int] | None, typer.Option("--seeds", help="synthetic seeds (repeatable)")]
+SeedsOpt = Annotated[str, typer.Option("--seeds", help="synthetic seeds, comma separated")]
+
+
+def _seeds(text: str) -> list[int]:
+    try:
+        return [int(s) for s in text.replace(",", " ").split()]
+    except ValueError:
+        raise UserError(f"--seeds must be integers separated by commas, got {text!r}") from None
 
 
 @bench_app.command("association")
-def bench_association(seeds: SeedsOpt = None, frames: Annotated[int, typer.Option("--frames")] = 300,
+def bench_association(seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Option("--frames")] = 300,
                       write: WriteOpt = None) -> None:
     """NPDA precision/recall on synthetic keyframes, the Table 2.2 grid, ablation and timing."""
     from service.bench.association import run_association_bench
 
-    run_association_bench(console, seeds or [0, 1, 2], frames, write)
+    run_association_bench(console, _seeds(seeds), frames, write)
 
 
 @bench_app.command("objects")
-def bench_objects(seeds: SeedsOpt = None, frames: Annotated[int, typer.Option("--frames")] = 300,
+def bench_objects(seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Option("--frames")] = 300,
                   write: WriteOpt = None) -> None:
     """Objects mapped / present, false objects, ground-plane IoU and centroid error on synthetic scenes."""
-    from service.bench.association import run_objects_bench
+    from service.bench.objects import run_objects_bench
 
-    run_objects_bench(console, seeds or [0, 1, 2], frames, write)
+    run_objects_bench(console, _seeds(seeds), frames, write)
 
 
 @bench_app.command("frontends")

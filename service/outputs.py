@@ -8,7 +8,6 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 
 from graph.geometry import pose_to_tum
 from graph.metrics import TrajectoryError, match_timestamps, trajectory_error

@@ -1,0 +1,144 @@
+"""Back-projection of detections and object feature vectors f = {X, Y, Z, S} (Sec. 2.4.4, SPEC 6.5).
+
+Depth images are float metres with NaN where invalid; boxes are [x1, y1, x2, y2] in pixels; poses are
+camera-to-world 4x4 (OpenCV camera axes).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+Box = tuple[float, float, float, float]
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """How a detection's depth pixels become world points."""
+
+    anchor_fraction: float = 0.5
+    """Central fraction (per side) of the box whose median depth anchors the object's depth segment."""
+    gap_m: float = 0.05
+    """A jump larger than this between sorted box depths separates the object from its background."""
+    max_points: int = 400
+    """Back-projected points kept per detection (deterministic stride), so every view weighs alike."""
+
+
+@dataclass(frozen=True)
+class FeatureVector:
+    """Per-axis Gaussian of an object's world points plus its class (Sec. 2.4.4's f = {X, Y, Z, S}).
+
+    ``cov`` keeps the full 3x3 second moment (its diagonal is the per-axis variance the clustering
+    distance uses; the off-diagonal terms orient the object's ellipse); ``n`` is the point count.
+    """
+
+    mean: np.ndarray
+    cov: np.ndarray
+    n: int
+    label: str
+    track_id: int = -1
+
+    @property
+    def var(self) -> np.ndarray:
+        """Per-axis variances (X, Y, Z)."""
+        return np.diag(self.cov).copy()
+
+
+def box_window(shape: tuple[int, ...], box: Box, fraction: float = 1.0) -> tuple[int, int, int, int] | None:
+    """Integer pixel window (y1, y2, x1, x2) of the central ``fraction`` of a box, clipped; None if empty."""
+    h, w = shape[:2]
+    cx, cy = (box[0] + box[2]) / 2.0, (box[1] + box[3]) / 2.0
+    hw, hh = (box[2] - box[0]) * fraction / 2.0, (box[3] - box[1]) * fraction / 2.0
+    x1, x2 = max(int(np.floor(cx - hw)), 0), min(int(np.ceil(cx + hw)), w)
+    y1, y2 = max(int(np.floor(cy - hh)), 0), min(int(np.ceil(cy + hh)), h)
+    return (y1, y2, x1, x2) if x2 > x1 and y2 > y1 else None
+
+
+def box_pixels(depth_m: np.ndarray, box: Box, fraction: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of the valid depth pixels inside the central ``fraction`` of a box."""
+    win = box_window(depth_m.shape, box, fraction)
+    if win is None:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    y1, y2, x1, x2 = win
+    rows, cols = np.nonzero(np.isfinite(depth_m[y1:y2, x1:x2]))
+    return rows + y1, cols + x1
+
+
+def dominant_depth_mask(depths: np.ndarray, anchor: float, gap_m: float) -> np.ndarray:
+    """Mask of the depths in the gap-free segment (sorted depths, no jump > ``gap_m``) around ``anchor``."""
+    if len(depths) == 0 or not np.isfinite(anchor):
+        return np.zeros(len(depths), bool)
+    order = np.argsort(depths, kind="stable")
+    s = depths[order]
+    breaks = np.flatnonzero(np.diff(s) > gap_m)  # segment j spans (breaks[j-1], breaks[j]]
+    seg = np.searchsorted(breaks, min(np.searchsorted(s, anchor), len(s) - 1))
+    lo = breaks[seg - 1] + 1 if seg > 0 else 0
+    hi = breaks[seg] + 1 if seg < len(breaks) else len(s)
+    mask = np.zeros(len(depths), bool)
+    mask[order[lo:hi]] = True
+    return mask
+
+
+def object_pixels(depth_m: np.ndarray, box: Box, config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
+    """The box's valid pixels in the dominant depth segment anchored at the central median (SPEC 6.5)."""
+    rows, cols = box_pixels(depth_m, box)
+    if len(rows) == 0:
+        return rows, cols
+    cr, cc = box_pixels(depth_m, box, config.anchor_fraction)
+    anchor = float(np.median(depth_m[cr, cc])) if len(cr) else float(np.median(depth_m[rows, cols]))
+    keep = dominant_depth_mask(depth_m[rows, cols], anchor, config.gap_m)
+    return rows[keep], cols[keep]
+
+
+def backproject(depth_m: np.ndarray, K: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Camera-frame points (N, 3) of the pixels (rows, cols) with depth, pinhole model."""
+    z = depth_m[rows, cols].astype(np.float64)
+    x = (cols - K[0, 2]) / K[0, 0] * z
+    y = (rows - K[1, 2]) / K[1, 1] * z
+    return np.stack([x, y, z], axis=1)
+
+
+def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Points (N, 3) mapped by the 4x4 rigid transform T."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def stride_subsample(n: int, k: int) -> np.ndarray:
+    """Indices of at most ``k`` of ``n`` items, evenly spread (deterministic)."""
+    if n <= k:
+        return np.arange(n)
+    return np.linspace(0, n - 1, k).round().astype(np.int64)
+
+
+def backproject_detection(
+    depth_m: np.ndarray, K: np.ndarray, T_wc: np.ndarray, box: Box, config: FeatureConfig
+) -> np.ndarray:
+    """World points (N, 3) of a detection's object pixels with the camera pose ``T_wc`` (Sec. 2.4.4)."""
+    rows, cols = object_pixels(depth_m, box, config)
+    idx = stride_subsample(len(rows), config.max_points)
+    return transform(T_wc, backproject(depth_m, K, rows[idx], cols[idx]))
+
+
+def feature_from_points(points: np.ndarray, label: str, track_id: int = -1) -> FeatureVector | None:
+    """The feature vector (mean, covariance, class) of a set of world points, None when too few."""
+    if len(points) < 3:
+        return None
+    mean = points.mean(axis=0)
+    d = points - mean
+    return FeatureVector(mean, d.T @ d / len(points), len(points), label, track_id)
+
+
+def merge_features(features: Sequence[FeatureVector]) -> FeatureVector:
+    """The pooled Gaussian of several feature vectors of one class (moments weighted by point count)."""
+    n = np.array([f.n for f in features], float)
+    means = np.stack([f.mean for f in features])
+    w = n / n.sum()
+    mean = w @ means
+    d = means - mean
+    cov = np.einsum("k,kij->ij", w, np.stack([f.cov for f in features])) + (d.T * w) @ d
+    return FeatureVector(mean, cov, int(n.sum()), features[0].label, features[0].track_id)

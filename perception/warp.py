@@ -1,0 +1,109 @@
+"""Depth warping for large motion (Sec. 2.4.3): predict the newer keyframe's depth from the older one.
+
+Conventions: depth images are float metres with NaN where invalid; ``K`` is the 3x3 pinhole matrix;
+``T_new_old`` maps points from the older camera frame into the newer one (``inverse(T_wc_new) @ T_wc_old``).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from graph.geometry import motion_magnitude
+from perception.features import Box, backproject, box_pixels, dominant_depth_mask, stride_subsample, transform
+
+log = logging.getLogger(__name__)
+
+MIN_Z_M = 1e-3
+
+
+def needs_warp(T_rel: np.ndarray, tau: float, phi: float) -> bool:
+    """True when the relative motion exceeds translation ``tau`` (m) or rotation ``phi`` (rad), eq. 2.16."""
+    t, angle = motion_magnitude(T_rel)
+    return t > tau or angle > phi
+
+
+def project(points: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (N, 2) as (u, v) and depths (N,) of camera-frame points."""
+    z = points[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * points[:, 0] / z + K[0, 2]
+        v = K[1, 1] * points[:, 1] / z + K[1, 2]
+    return np.stack([u, v], axis=1), z
+
+
+def warp_depth(depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, splat: int = 1) -> np.ndarray:
+    """The older depth seen from the newer camera: back-project, transform, re-project with a z-buffer (Sec. 2.4.3).
+
+    Each point lands on its nearest pixel (``splat=2``: on the 2x2 pixels around it, which closes the
+    one-pixel cracks of magnified surfaces); where several land on one pixel the nearest wins
+    (``np.minimum.at``). Pixels nothing lands on are NaN.
+    """
+    h, w = depth_m.shape
+    rows, cols = np.nonzero(np.isfinite(depth_m) & (depth_m > 0))
+    z0 = depth_m[rows, cols].astype(np.float32)
+    x0 = (cols.astype(np.float32) - np.float32(K[0, 2])) * (z0 / np.float32(K[0, 0]))
+    y0 = (rows.astype(np.float32) - np.float32(K[1, 2])) * (z0 / np.float32(K[1, 1]))
+    R, t = T_new_old[:3, :3].astype(np.float32), T_new_old[:3, 3].astype(np.float32)
+    x = R[0, 0] * x0 + R[0, 1] * y0 + R[0, 2] * z0 + t[0]
+    y = R[1, 0] * x0 + R[1, 1] * y0 + R[1, 2] * z0 + t[1]
+    z = R[2, 0] * x0 + R[2, 1] * y0 + R[2, 2] * z0 + t[2]
+    front = z > MIN_Z_M
+    x, y, z = x[front], y[front], z[front]
+    u = np.float32(K[0, 0]) * x / z + np.float32(K[0, 2])
+    v = np.float32(K[1, 1]) * y / z + np.float32(K[1, 2])
+    if splat == 2:
+        ui, vi = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+        ui = np.concatenate([ui, ui + 1, ui, ui + 1])
+        vi = np.concatenate([vi, vi, vi + 1, vi + 1])
+        z = np.tile(z, 4)
+    else:
+        ui, vi = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+    inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+    out = np.full(h * w, np.inf, dtype=np.float32)
+    np.minimum.at(out, vi[inside] * w + ui[inside], z[inside])
+    out[np.isinf(out)] = np.nan
+    return out.reshape(h, w)
+
+
+def warp_box(box: Box, depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, gap_m: float = 0.05,
+             anchor_fraction: float = 0.5, max_points: int = 4000) -> Box | None:
+    """A box moved into the newer image: bounding box of its projected dominant-depth pixels, or None.
+
+    Only the pixels of the box's dominant depth segment are projected (background inside the box moves
+    with a different parallax); at most ``max_points`` pixels (by stride) are used; the result is clipped
+    to the image. None when nothing projects inside.
+    """
+    h, w = depth_m.shape
+    if not np.all(np.isfinite(box)):
+        return None
+    rows, cols = box_pixels(depth_m, box)
+    idx = stride_subsample(len(rows), max_points)
+    rows, cols = rows[idx], cols[idx]
+    if len(rows) == 0:
+        return None
+    cr, cc = box_pixels(depth_m, box, anchor_fraction)
+    anchor = float(np.median(depth_m[cr, cc] if len(cr) else depth_m[rows, cols]))
+    keep = dominant_depth_mask(depth_m[rows, cols], anchor, gap_m)
+    uv, z = project(transform(T_new_old, backproject(depth_m, K, rows[keep], cols[keep])), K)
+    uv = uv[z > MIN_Z_M]
+    if len(uv) == 0:
+        return None
+    lo, hi = uv.min(axis=0), uv.max(axis=0)
+    bx1, by1, bx2, by2 = max(lo[0], 0.0), max(lo[1], 0.0), min(hi[0] + 1.0, float(w)), min(hi[1] + 1.0, float(h))
+    if bx2 <= bx1 or by2 <= by1:
+        return None
+    return (float(bx1), float(by1), float(bx2), float(by2))
+
+
+def warp_boxes(
+    boxes: list[Box], depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray
+) -> np.ndarray:
+    """Boxes (L, 4) moved into the newer image by ``warp_box``; rows of NaN for boxes that leave it."""
+    out = np.full((len(boxes), 4), np.nan)
+    for i, box in enumerate(boxes):
+        moved = warp_box(box, depth_m, K, T_new_old)
+        if moved is not None:
+            out[i] = moved
+    return out

@@ -1,0 +1,112 @@
+"""Clustering (Sec. 2.4.5-2.4.6): Bhattacharyya distance, HDBSCAN with the class penalty, ellipsoids, eq. 2.15."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from perception.clustering import (
+    ClusterConfig,
+    Clusterer,
+    bhattacharyya,
+    bhattacharyya_matrix,
+    cluster_labels,
+    ellipsoid,
+    merge_track_runs,
+)
+from perception.features import FeatureVector, merge_features
+
+
+def _feature(mean, var, label: str = "chair", track: int = 0, n: int = 100) -> FeatureVector:
+    return FeatureVector(np.asarray(mean, float), np.diag(np.asarray(var, float)), n, label, track)
+
+
+def _group(centre, label: str, count: int, seed: int, first_track: int = 0) -> list[FeatureVector]:
+    rng = np.random.default_rng(seed)
+    return [_feature(np.asarray(centre) + rng.normal(0, 0.02, 3), rng.uniform(0.004, 0.006, 3), label,
+                     first_track + q // 3) for q in range(count)]
+
+
+def test_bhattacharyya_matches_a_hand_computed_value() -> None:
+    # x axis: 1/4 ln(1/4 (1/2 + 2 + 2)) + 1/4 (1^2 / 3) = 0.25 ln 1.125 + 1/12; y and z axes: identical Gaussians
+    expected = 0.25 * np.log(1.125) + 1.0 / 12.0
+    d = bhattacharyya(np.zeros(3), np.ones(3), np.array([1.0, 0.0, 0.0]), np.array([2.0, 1.0, 1.0]))
+    assert d == pytest.approx(expected, rel=1e-12)
+    assert expected == pytest.approx(0.112779, abs=1e-6)
+
+
+def test_distance_matrix_is_the_pairwise_sum_plus_class_penalty() -> None:
+    rng = np.random.default_rng(0)
+    means, var = rng.normal(0, 1, (6, 3)), rng.uniform(0.01, 0.5, (6, 3))
+    labels = ["cup", "cup", "tv", "cup", "tv", "book"]
+    D = bhattacharyya_matrix(means, var, labels, penalty=100.0, var_floor=1e-6)
+    for a in range(6):
+        for b in range(6):
+            expected = 0.0 if a == b else bhattacharyya(means[a], var[a], means[b], var[b]) + \
+                100.0 * (labels[a] != labels[b])
+            assert D[a, b] == pytest.approx(expected, rel=1e-4, abs=1e-4)
+    np.testing.assert_allclose(D, D.T, rtol=1e-5)
+
+
+def test_hdbscan_separates_places_and_the_class_penalty_splits_one_place() -> None:
+    chairs_here = _group((0.0, 0.0, 0.5), "chair", 12, 1)
+    chairs_there = _group((3.0, 1.0, 0.5), "chair", 12, 2, first_track=10)
+    cups_here = _group((0.0, 0.0, 0.5), "cup", 12, 3, first_track=20)  # same place, other class
+    feats = chairs_here + chairs_there + cups_here
+    for per_class in (False, True):
+        labels = cluster_labels(feats, ClusterConfig(per_class=per_class))
+        groups = [labels[:12], labels[12:24], labels[24:]]
+        assert all(len(set(g)) == 1 and g[0] >= 0 for g in groups)
+        assert len({g[0] for g in groups}) == 3
+
+
+def test_ellipsoid_axes_are_principal_directions_times_scaled_std() -> None:
+    yaw = 0.4
+    R = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    cov = R @ np.diag([0.16, 0.04, 0.01]) @ R.T
+    obj = ellipsoid([FeatureVector(np.array([1.0, 2.0, 0.5]), cov, 50, "couch", 7)], object_id=3, axis_scale=1.5)
+    lengths = np.sort(np.linalg.norm(obj.axes, axis=1))
+    np.testing.assert_allclose(lengths, 1.5 * np.array([0.1, 0.2, 0.4]), rtol=1e-9)
+    longest = obj.axes[np.argmax(np.linalg.norm(obj.axes, axis=1))]
+    assert abs(longest @ R[:, 0]) == pytest.approx(0.6, rel=1e-9)  # along the yawed x axis
+    assert obj.id == 3 and obj.label == "couch" and obj.tracks == frozenset({7})
+
+
+def test_pooled_moments_of_merged_track_runs_equal_merge_features() -> None:
+    feats = _group((1.0, 1.0, 1.0), "cup", 9, 4)  # tracks 0, 1, 2 with 3 vectors each
+    merged = merge_track_runs(feats, run=3)
+    assert len(merged) == 3
+    for track in range(3):
+        ref = merge_features([f for f in feats if f.track_id == track])
+        got = next(f for f in merged if f.track_id == track)
+        np.testing.assert_allclose(got.mean, ref.mean)
+        np.testing.assert_allclose(got.cov, ref.cov, atol=1e-12)
+        assert got.n == ref.n
+
+
+def test_reclustering_follows_eq_2_15_and_the_outlier_count() -> None:
+    cfg = ClusterConfig(outlier_threshold=5)
+    cl = Clusterer(cfg)
+    cl.add(_group((0.0, 0.0, 0.5), "chair", 12, 1))
+    assert cl.step([], []) and len(cl.objects) == 1  # no objects yet: cluster (Algorithm 2 line 10)
+    fits = _feature((0.0, 0.0, 0.5), (0.005, 0.005, 0.005))
+    outlier = _feature((3.0, 3.0, 0.5), (0.005, 0.005, 0.005), track=50)
+    cl.add([outlier])
+    assert not cl.step([fits, fits, outlier], [True, True, True])  # |M n T| = 2 >= |M n O| = 1
+    assert not cl.step([outlier], [False])  # not associated: not in M
+    assert cl.step([outlier, outlier], [True, True])  # now |M n T| = 2 < |M n O| = 3
+    assert cl.reclusterings == 2
+    cl.add([outlier])
+    for _ in range(4):  # eq. 2.15 never holds (many fits), but 5 outliers accumulate
+        assert not cl.step([fits, fits, fits, outlier], [True] * 4)
+    assert cl.step([fits, fits, fits, outlier], [True] * 4)
+
+
+def test_object_ids_persist_across_reclustering() -> None:
+    cl = Clusterer()
+    cl.add(_group((0.0, 0.0, 0.5), "chair", 12, 1) + _group((3.0, 0.0, 0.5), "tv", 12, 2, first_track=10))
+    first = {o.label: o.id for o in cl.recluster()}
+    cl.add(_group((0.0, 0.0, 0.5), "chair", 6, 5, first_track=0) + _group((0.0, 3.0, 0.5), "cup", 9, 6, 30))
+    second = {o.label: o.id for o in cl.recluster()}
+    assert second["chair"] == first["chair"] and second["tv"] == first["tv"]
+    assert second["cup"] not in first.values()

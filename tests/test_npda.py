@@ -1,0 +1,141 @@
+"""NPDA (SPEC 6.2): Mann-Whitney U, ties and p-value against scipy; batched U; gates; assignment; tracks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import mannwhitneyu, norm
+
+from perception.frame import Detection
+from perception.npda import (
+    NPDAConfig,
+    assign,
+    association_matrix,
+    association_score,
+    box_samples,
+    is_compatible,
+    mann_whitney,
+    u_statistics,
+)
+from perception.tracks import Tracker
+
+
+def _scipy(x: np.ndarray, y: np.ndarray, continuity: bool) -> tuple[float, float]:
+    """scipy's U counting x < y (its statistic for (y, x)) and its asymptotic two-sided p-value."""
+    r = mannwhitneyu(y, x, alternative="two-sided", method="asymptotic", use_continuity=continuity)
+    return float(r.statistic), float(r.pvalue)
+
+
+def test_u_and_p_value_match_scipy_without_ties() -> None:
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(2.0, 0.1, 57), rng.normal(2.03, 0.1, 43)
+    mw = mann_whitney(x, y)
+    u, p = _scipy(x, y, continuity=False)
+    assert mw.u == u
+    assert mw.mean == 57 * 43 / 2
+    assert mw.var == pytest.approx(57 * 43 * 101 / 12)
+    assert association_score(mw.u, mw.mean, mw.var) == pytest.approx(p, rel=1e-12)
+
+
+def test_tie_correction_and_p_value_match_scipy_with_many_ties() -> None:
+    rng = np.random.default_rng(1)
+    x, y = np.round(rng.normal(2.0, 0.02, 120), 2), np.round(rng.normal(2.005, 0.02, 90), 2)
+    mw = mann_whitney(x, y)
+    u, p = _scipy(x, y, continuity=False)
+    _, counts = np.unique(np.concatenate([x, y]), return_counts=True)
+    assert counts.max() > 10  # heavily tied
+    tc = np.sum(counts**3.0 - counts) / (210 * (210**2 - 1))
+    assert mw.u == u
+    assert mw.var == pytest.approx(120 * 90 * 211 / 12 * (1 - tc))
+    assert association_score(mw.u, mw.mean, mw.var) == pytest.approx(p, rel=1e-12)
+
+
+def test_score_is_the_no_continuity_p_value_not_the_corrected_one() -> None:
+    rng = np.random.default_rng(2)
+    x, y = rng.normal(0, 1, 30), rng.normal(0.4, 1, 30)
+    mw = mann_whitney(x, y)
+    _, p_plain = _scipy(x, y, continuity=False)
+    _, p_corrected = _scipy(x, y, continuity=True)
+    score = float(association_score(mw.u, mw.mean, mw.var))
+    assert score == pytest.approx(p_plain, rel=1e-12)
+    assert abs(score - p_corrected) > 1e-4
+
+
+def test_batched_u_statistics_equal_pairwise_mann_whitney() -> None:
+    rng = np.random.default_rng(3)
+    prev = [rng.integers(1000, 1100, n) for n in (40, 25, 60)]
+    cur = [rng.integers(1020, 1120, n) for n in (30, 50)]
+    u, mean, var = u_statistics(prev, cur)
+    for l, a in enumerate(prev):
+        for k, b in enumerate(cur):
+            mw = mann_whitney(b, a)  # eq. 2.4: current samples below previous ones
+            assert u[l, k] == pytest.approx(mw.u)
+            assert mean[l, k] == pytest.approx(mw.mean)
+            assert var[l, k] == pytest.approx(mw.var)
+
+
+def test_compatibility_interval_agrees_with_score_below_the_mean() -> None:
+    mean, var = 500.0, 2500.0  # sd 50
+    for u in (480.0, 430.0, 400.0, 360.0):
+        score = float(association_score(u, mean, var))
+        for c in (0.80, 0.90, 0.95, 0.99):
+            assert is_compatible(u, mean, var, c) == (score >= 1 - c - 1e-12)
+    z90 = float(norm.ppf(0.95))  # eq. 2.13's 1.645
+    assert is_compatible(mean + 1.0 + z90 * 50 - 1e-6, mean, var, 0.90)  # the upper bound carries eq. 2.13's +1
+    assert not is_compatible(mean + 1.0 + z90 * 50 + 1e-3, mean, var, 0.90)
+    assert not is_compatible(mean - z90 * 50 - 1e-3, mean, var, 0.90)
+
+
+def test_one_to_one_assignment_vs_per_column_argmax() -> None:
+    scores = np.array([[0.9, 0.8], [0.0, 0.5]])
+    assert sorted(assign(scores, NPDAConfig(alpha=0.1))) == [(0, 0), (1, 1)]
+    assert sorted(assign(scores, NPDAConfig(alpha=0.1, one_to_one=False))) == [(0, 0), (0, 1)]
+
+
+def test_assignment_drops_pairs_below_alpha() -> None:
+    scores = np.array([[0.04, 0.0], [0.0, 0.3]])
+    assert assign(scores, NPDAConfig(alpha=0.05)) == [(1, 1)]
+    assert assign(np.zeros((0, 3)), NPDAConfig()) == []
+
+
+def _two_object_depth(seed: int) -> np.ndarray:
+    """60x80 depth: wall at 3 m, object A at 1.2 m (left), object B at 2.0 m (right), mm-quantised noise."""
+    rng = np.random.default_rng(seed)
+    d = np.full((60, 80), 3.0, np.float32)
+    d[10:40, 5:30] = 1.2 + 0.05 * np.linspace(0, 1, 25)[None, :]
+    d[15:45, 45:75] = 2.0 + 0.05 * np.linspace(0, 1, 30)[None, :]
+    return np.round(d + rng.normal(0, 0.002, d.shape), 3).astype(np.float32)
+
+
+def test_association_matrix_separates_objects_and_applies_gates() -> None:
+    prev = [Detection("chair", 0.9, (5, 10, 30, 40)), Detection("chair", 0.9, (45, 15, 75, 45))]
+    cur = [Detection("chair", 0.9, (46, 14, 74, 45)), Detection("cup", 0.9, (6, 11, 30, 40))]
+    dp, dc = _two_object_depth(0), _two_object_depth(1)
+    cfg = NPDAConfig(class_gate=False, min_iou=0.0)
+    A = association_matrix(prev, dp, cur, dc, cfg)
+    assert A[1, 0] > 0.05 and A[0, 1] > 0.05
+    assert A[0, 0] < 1e-6 and A[1, 1] < 1e-6
+    gated = association_matrix(prev, dp, cur, dc, NPDAConfig(min_iou=0.0))
+    assert gated[0, 1] == 0.0  # chair vs cup
+    boxes_far = np.array([[0, 0, 4, 4], [45, 15, 75, 45]], float)
+    box_gated = association_matrix(prev, dp, cur, dc, NPDAConfig(class_gate=False, min_iou=0.3), boxes_far)
+    assert box_gated[0, 1] == 0.0 and box_gated[1, 0] == A[1, 0]
+
+
+def test_box_samples_are_bounded_and_deterministic() -> None:
+    d = _two_object_depth(0)
+    cfg = NPDAConfig(max_samples=40)
+    a = box_samples(d, (0, 0, 80, 60), cfg)
+    assert len(a) == 40 and np.array_equal(a, box_samples(d, (0, 0, 80, 60), cfg))
+    assert len(box_samples(d, (np.nan, 0, 10, 10), cfg)) == 0
+
+
+def test_tracks_follow_association_chains_and_keep_ids() -> None:
+    tracker = Tracker()
+    first = tracker.update(0, ["cup", "chair"], [])
+    second = tracker.update(1, ["chair", "cup", "tv"], [(1, 0), (0, 1)])
+    third = tracker.update(2, ["tv", "book"], [(2, 0)])
+    assert second[:2] == [first[1], first[0]]
+    assert third[0] == second[2] and len(set(first + third)) == 4
+    assert tracker.associated(third[0]) and tracker.associated(first[0])
+    assert not tracker.associated(third[1])
