@@ -98,6 +98,12 @@ class DetectorSettings(BaseModel):
     max_detections: int = Field(50, ge=1)
 
 
+class ObjectSettings(BaseModel):
+    """Object association (NPDA), tracks and clustering on keyframes (defaults from `objslam bench association`)."""
+
+    enabled: bool = True
+
+
 class GraphSettings(BaseModel):
     """iSAM2 pose graph noise models and solver parameters."""
 
@@ -132,6 +138,7 @@ class Settings(BaseSettings):
     odometry: OdometrySettings = Field(default_factory=OdometrySettings)
     loops: LoopSettings = Field(default_factory=LoopSettings)
     detector: DetectorSettings = Field(default_factory=DetectorSettings)
+    objects: ObjectSettings = Field(default_factory=ObjectSettings)
     graph: GraphSettings = Field(default_factory=GraphSettings)
     camera: CameraDefaults = Field(default_factory=CameraDefaults)
 

@@ -21,8 +21,24 @@ def ground_axes(points: np.ndarray) -> np.ndarray:
     return vt[:2]
 
 
+def plot_objects(ax, objects: list[dict], axes: np.ndarray, origin: np.ndarray) -> None:
+    """Each object's ellipse (covariance projected on the ground plane, ~1.5 std) with its label."""
+    from matplotlib.patches import Ellipse
+
+    colours = plt.get_cmap("tab10")
+    for i, o in enumerate(objects):
+        mean = (np.asarray(o["mean"]) - origin) @ axes.T
+        cov2 = axes @ np.asarray(o["cov"]) @ axes.T
+        vals, vecs = np.linalg.eigh(cov2)
+        w, h = 2 * 1.5 * np.sqrt(np.clip(vals, 1e-8, None))
+        angle = np.degrees(np.arctan2(vecs[1, 1], vecs[0, 1]))
+        ax.add_patch(Ellipse(mean, h, w, angle=angle, fill=False, lw=1.5, color=colours(i % 10)))
+        ax.annotate(o["label"], mean, fontsize=7, ha="center", color=colours(i % 10))
+
+
 def plot_map(path: Path, trajectory: Trajectory, odometry: Trajectory, gt: Trajectory | None,
-             error: TrajectoryError | None) -> None:
+             error: TrajectoryError | None, objects: list[dict] | None = None,
+             loops: list[dict] | None = None) -> None:
     """Draw optimised trajectory, odometry and (aligned) ground truth projected on the ground plane."""
     fig, ax = plt.subplots(figsize=(7, 7), dpi=110)
     if len(trajectory):
@@ -34,6 +50,12 @@ def plot_map(path: Path, trajectory: Trajectory, odometry: Trajectory, gt: Traje
             g_est = (inv[:3, :3] @ g.T + inv[:3, 3:4]).T
             ax.plot(*(g_est @ axes.T).T, color="0.6", lw=1.5, label="ground truth (aligned)")
         ax.plot(*(odometry.poses[:, :3, 3] @ axes.T).T, color="tab:orange", lw=1, ls="--", label="odometry")
+        by_t = {float(t): p for t, p in zip(trajectory.timestamps, pts)}
+        for r in (loops or []):
+            a, b = by_t.get(float(r["match_t"])), by_t.get(float(r["query_t"]))
+            if r.get("accepted") and a is not None and b is not None:
+                ax.plot(*(np.stack([a, b]) @ axes.T).T, color="tab:red", lw=0.8, alpha=0.6)
+        plot_objects(ax, objects or [], axes, np.zeros(3))
         ax.plot(*(pts @ axes.T).T, color="tab:blue", lw=1.5, label="optimised")
         ax.scatter(*(pts[:1] @ axes.T).T, color="green", zorder=5, label="start")
     title = "objslam map (top-down)"

@@ -56,7 +56,7 @@ def write_outputs(out: Path, trajectory: Trajectory, odometry: Trajectory, summa
     atomic_write(out / "report.md", report_markdown(summary))
     from service.mapplot import plot_map  # matplotlib is slow to import; only needed here
 
-    plot_map(out / "map.png", trajectory, odometry, gt, metrics["trajectory"])
+    plot_map(out / "map.png", trajectory, odometry, gt, metrics["trajectory"], objects, loops)
     return summary
 
 

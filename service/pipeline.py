@@ -16,7 +16,9 @@ import numpy as np
 from graph.pose_graph import NoiseSettings, PoseGraph
 from perception.frame import Frame
 from perception.frontend import ExternalOdometry, KeyframePolicy, Step, VisualOdometry
+from perception.object_map import ObjectMapper, object_json
 from perception.odometry import FeatureExtractor, OdometryConfig, RelativePoseEstimator
+from perception.registration import depth_in_color
 from service.config import Settings
 from service.loop_closure import KeyframeEntry, LoopCloser, LoopConfig
 from service.protocol import FrameRejected, Reason
@@ -69,6 +71,8 @@ class Pipeline:
         self._detector = None
         self.keyframe_detections: dict[int, list] = {}
         self.detections_by_class: Counter[str] = Counter()
+        self.objects = ObjectMapper() if settings.objects.enabled else None
+        self.object_map_version = 0
 
     @property
     def last_timestamp(self) -> float:
@@ -130,6 +134,7 @@ class Pipeline:
                     self.graph.add_between(kf - back, kf, T, sigma_m, sigma_deg)
         self._kf_odometry.append(step.pose)
         self._detect(kf, frame)
+        self._map_objects(kf, frame)
         if self.loops is not None:
             t0 = time.perf_counter()
             features = step.features if step.features is not None else self._extractor.extract(frame)
@@ -146,6 +151,33 @@ class Pipeline:
             self.timings["detector"] = time.perf_counter() - t0
         self.keyframe_detections[kf] = detections or []
         self.detections_by_class.update(d.label for d in self.keyframe_detections[kf])
+
+    def _map_objects(self, kf: int, frame: Frame) -> None:
+        """Associate the keyframe's detections, extend tracks and re-cluster objects (Sec. 2.4, SPEC 6.2-6.7).
+
+        Boxes are colour pixels, so depth is registered to colour and the colour camera's pose is used.
+        """
+        if self.objects is None:
+            return
+        t0 = time.perf_counter()
+        camera = frame.camera
+        depth = depth_in_color(frame.depth_m(), camera)
+        pose = self.graph.pose(kf)
+        if not camera.registered and camera.depth_to_color is not None:
+            pose = pose @ np.linalg.inv(camera.depth_to_color)
+        if self.objects.add_keyframe(kf, self.keyframe_detections[kf], depth, camera.color.matrix(), pose):
+            self.object_map_version += 1
+        self.timings["objects"] = time.perf_counter() - t0
+
+    def finish(self) -> None:
+        """End of a sequence (``run``): emit the open tracks and re-cluster the objects once more."""
+        if self.objects is not None and self.records:
+            self.objects.finish()
+            self.object_map_version += 1
+
+    def object_list(self) -> list[dict]:
+        """Current objects in the frame of the trajectory (``objects.json`` entries)."""
+        return [object_json(o) for o in self.objects.objects] if self.objects is not None else []
 
     def _get_detector(self):
         if self._detector is None:

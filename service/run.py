@@ -6,7 +6,6 @@ import logging
 import signal
 import threading
 import time
-from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +40,7 @@ def run_dataset(spec: str | Dataset, out: Path, settings: Settings, max_frames: 
             log.warning("not every replayed frame reached the pipeline within 120 s")
         elapsed = time.monotonic() - started
         pub.undeclare()
+        node.finish()
         status = node.status()
         summary = _summary(dataset.name, result.frames, elapsed, status)
         traj, odom = node.trajectories()
@@ -60,7 +60,7 @@ def _summary(name: str, frames: int, elapsed: float, status: dict[str, Any]) -> 
         "frames_dropped": status["frames_dropped"],
         "keyframes": status["keyframes"],
         "poses": status["poses"],
-        "objects_by_class": dict(Counter()),
+        "objects_by_class": status.get("objects_by_class", {}),
         "keyframe_detections_by_class": status.get("keyframe_detections_by_class", {}),
         "loop_closures": status["loop_closures"]["accepted"],
         "loop_candidates": status["loop_closures"]["accepted"] + status["loop_closures"]["rejected"],

@@ -48,3 +48,18 @@ def test_keyframes_without_detections_run_the_onnx_detector():
     p.process(ds.frame(0))
     assert p._detector is not None and "detector" in p.timings
     assert {"chair", "cup"} & set(p.detections_by_class)
+
+
+def test_objects_are_mapped_near_their_true_boxes_with_the_right_labels():
+    ds = open_dataset("synthetic:room?seed=1&frames=300")
+    p = Pipeline(load_settings(None, {"loops": {"source": "off"}}))
+    for i in range(0, 120):
+        p.process(ds.frame(i))
+    p.finish()
+    objects = p.object_list()
+    truth = ds.objects
+    assert len(objects) >= 5
+    for o in objects:  # every mapped object lies near a true object of its class
+        same = [t for t in truth if t.label == o["label"]]
+        assert same and min(np.linalg.norm(np.asarray(t.center) - o["mean"]) for t in same) < 0.5
+        assert np.asarray(o["cov"]).shape == (3, 3) and np.asarray(o["axes"]).shape == (3, 3)

@@ -9,9 +9,9 @@ import numpy as np
 from rich.console import Console
 
 from perception.clustering import ClusterConfig, Clusterer
-from perception.features import FeatureConfig, backproject_detection, feature_from_points
-from graph.geometry import inverse
-from perception.npda import NPDAConfig, associate
+from perception.features import FeatureConfig
+from perception.npda import NPDAConfig
+from perception.object_map import ObjectMapper
 from perception.tracks import Tracker
 from service.bench.association import Scene, _pct, keyframe_step, load_scene
 from service.bench.report import markdown_table, record, show_table
@@ -20,22 +20,12 @@ from service.sources import ObjectTruth
 
 def map_objects(scene: Scene, k: int, npda: NPDAConfig, clustering: ClusterConfig, features: FeatureConfig,
                 tracker: Tracker) -> Clusterer:
-    """Algorithm 2 over a sequence with true poses: NPDA, tracks, back-projection, intermittent clustering."""
-    clusterer = Clusterer(clustering)
-    prev = None
+    """Algorithm 2 over a sequence with true poses (the service's ObjectMapper on every k-th frame)."""
+    mapper = ObjectMapper(npda, clustering, features, tracker)
     for j in range(0, len(scene.poses), k):
-        dets, depth, T = scene.dets[j], scene.depth_m(j), scene.poses[j]
-        pairs = [] if prev is None else associate(scene.dets[prev], scene.depth_m(prev), dets, depth, scene.K,
-                                                  inverse(T) @ scene.poses[prev], npda).pairs
-        ids = tracker.update(j, [d.label for d in dets], pairs)
-        obs = [feature_from_points(backproject_detection(depth, scene.K, T, d.box, features), d.label, t)
-               for d, t in zip(dets, ids)]
-        clusterer.add([tracker.observe(t, f) for t, f in zip(ids, obs)] + tracker.close_stale(j))
-        clusterer.step(obs, [tracker.associated(t) for t in ids])
-        prev = j
-    clusterer.add(tracker.flush())
-    clusterer.recluster()
-    return clusterer
+        mapper.add_keyframe(j, scene.dets[j], scene.depth_m(j), scene.K, scene.poses[j])
+    mapper.finish()
+    return mapper.clusterer
 
 
 def ellipse_box_iou(mean: np.ndarray, cov: np.ndarray, scale: float, truth: ObjectTruth, res: float = 0.01) -> float:
