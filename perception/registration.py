@@ -42,12 +42,23 @@ def reproject_depth(depth_m: np.ndarray, K_src: Intrinsics, K_dst: Intrinsics, T
     return project_zbuffer(moved, K_dst, width, height)
 
 
-def depth_in_color(depth_m: np.ndarray, camera: CameraModel) -> np.ndarray:
-    """Depth registered to the colour image (unchanged when the sensor is already registered)."""
+def depth_in_color(depth_m: np.ndarray, camera: CameraModel, scale: int = 1) -> np.ndarray:
+    """Depth registered to the colour image (unchanged when the sensor is already registered).
+
+    ``scale`` > 1 registers every ``scale``-th depth pixel into a 1/``scale`` colour grid and enlarges the
+    result (nearest neighbour): about scale^2 times cheaper, for consumers that sample depth in boxes.
+    """
     if camera.registered:
         return depth_m
     T = camera.depth_to_color if camera.depth_to_color is not None else np.eye(4)
-    return reproject_depth(depth_m, camera.depth, camera.color, T, camera.width, camera.height)
+    if scale == 1:
+        return reproject_depth(depth_m, camera.depth, camera.color, T, camera.width, camera.height)
+    d, c = camera.depth, camera.color
+    small_src = Intrinsics(d.fx / scale, d.fy / scale, d.cx / scale, d.cy / scale)
+    small_dst = Intrinsics(c.fx / scale, c.fy / scale, c.cx / scale, c.cy / scale)
+    w, h = -(-camera.width // scale), -(-camera.height // scale)
+    small = reproject_depth(depth_m[::scale, ::scale], small_src, small_dst, T, w, h)
+    return cv2.resize(small, (w * scale, h * scale), interpolation=cv2.INTER_NEAREST)[:camera.height, :camera.width]
 
 
 def smooth_depth_mask(depth_m: np.ndarray, max_ratio: float = 0.02, radius: int = 2) -> np.ndarray:

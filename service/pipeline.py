@@ -161,7 +161,7 @@ class Pipeline:
             return
         t0 = time.perf_counter()
         camera = frame.camera
-        depth = depth_in_color(frame.depth_m(), camera)
+        depth = depth_in_color(frame.depth_m(), camera, scale=2)
         pose = self.graph.pose(kf)
         if not camera.registered and camera.depth_to_color is not None:
             pose = pose @ np.linalg.inv(camera.depth_to_color)
