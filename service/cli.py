@@ -239,6 +239,15 @@ def bench_objects(seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Option
     run_objects_bench(console, _seeds(seeds), frames, write)
 
 
+@bench_app.command("stages")
+def bench_stages(dataset: Annotated[str, typer.Option("--dataset", help="dataset spec")],
+                 frames: Annotated[int | None, typer.Option("--frames")] = None, write: WriteOpt = None) -> None:
+    """Per-stage latency of the whole pipeline; keyframes/s of detection + association."""
+    from service.bench.stages import run_stages_bench
+
+    run_stages_bench(console, dataset, frames, write)
+
+
 @bench_app.command("frontends")
 def bench_frontends(dataset: Annotated[str, typer.Option("--dataset", help="dataset with ground truth")],
                     frames: Annotated[int, typer.Option("--frames")] = 400, write: WriteOpt = None) -> None:
