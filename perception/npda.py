@@ -52,6 +52,8 @@ class NPDAConfig:
     """Warp the previous depth when the relative translation exceeds this (m), eq. 2.16."""
     warp_phi: float = 0.01
     """... or when the relative rotation angle exceeds this (rad), eq. 2.16."""
+    warp_step: int = 2
+    """Warp every ``warp_step``-th pixel (splatted 2x2): 4x cheaper; measured by `objslam bench association`."""
     covisible_only: bool = True
     """With warping, sample only pixels valid in both the warped and the current depth (the co-visible part)."""
 
@@ -218,7 +220,7 @@ def associate(
     elif config.min_iou > 0:
         moved = np.array([d.box for d in prev_dets], float).reshape(-1, 4)
     if warped:
-        prev_depth = warp_depth(prev_depth, K, T_cur_prev)
+        prev_depth = warp_depth(prev_depth, K, T_cur_prev, step=config.warp_step)
         prev_dets = [replace(d, box=tuple(b)) for d, b in zip(prev_dets, moved)]
         if config.covisible_only:
             both = np.isfinite(prev_depth) & np.isfinite(cur_depth)

@@ -33,15 +33,21 @@ def project(points: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([u, v], axis=1), z
 
 
-def warp_depth(depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, splat: int = 1) -> np.ndarray:
+def warp_depth(depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, splat: int = 1, step: int = 1) -> np.ndarray:
     """The older depth seen from the newer camera: back-project, transform, re-project with a z-buffer (Sec. 2.4.3).
 
     Each point lands on its nearest pixel (``splat=2``: on the 2x2 pixels around it, which closes the
     one-pixel cracks of magnified surfaces); where several land on one pixel the nearest wins
-    (``np.minimum.at``). Pixels nothing lands on are NaN.
+    (``np.minimum.at``). Pixels nothing lands on are NaN. ``step=2`` warps every second pixel of every second
+    row and splats each onto 2x2 pixels: four times fewer points, for consumers that sample boxes.
     """
     h, w = depth_m.shape
-    rows, cols = np.nonzero(np.isfinite(depth_m) & (depth_m > 0))
+    if step > 1:
+        sub = depth_m[::step, ::step]
+        rows, cols = np.nonzero(np.isfinite(sub) & (sub > 0))
+        rows, cols, splat = rows * step, cols * step, 2
+    else:
+        rows, cols = np.nonzero(np.isfinite(depth_m) & (depth_m > 0))
     z0 = depth_m[rows, cols].astype(np.float32)
     x0 = (cols.astype(np.float32) - np.float32(K[0, 2])) * (z0 / np.float32(K[0, 0]))
     y0 = (rows.astype(np.float32) - np.float32(K[1, 2])) * (z0 / np.float32(K[1, 1]))

@@ -135,6 +135,7 @@ def ablation_configs(base: NPDAConfig) -> dict[str, NPDAConfig]:
     out["central 60 % of box"] = replace(base, box_fraction=0.6)
     out["all box pixels (not co-visible)"] = replace(base, covisible_only=False)
     out["never warp"] = replace(base, warp_tau=np.inf, warp_phi=np.inf)
+    out["warp every pixel (step 1)"] = replace(base, warp_step=1)
     return out
 
 
