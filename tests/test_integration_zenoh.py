@@ -64,12 +64,12 @@ def test_replayed_frames_are_all_processed_and_trajectory_equals_chained_odometr
                      stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         _wait_for_service(session, "objslam/itest/status")
-        replay = _objslam("replay", SPEC, "--rate", "25", *common, stdout=subprocess.PIPE,
+        replay = _objslam("replay", SPEC, "--rate", "15", *common, stdout=subprocess.PIPE,
                           stderr=subprocess.STDOUT, text=True)
         out, _ = replay.communicate(timeout=240)
         assert replay.returncode == 0, out
         status = {}
-        for _ in range(100):  # let the worker drain its queue
+        for _ in range(600):  # let the worker drain its queue (up to 60 s on a loaded machine)
             status = _get(session, "objslam/itest/status")
             if status["frames_processed"] + status["frames_rejected_total"] >= FRAMES:
                 break
