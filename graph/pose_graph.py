@@ -13,7 +13,7 @@ log = logging.getLogger(__name__)
 
 
 class SolverError(Exception):
-    """iSAM2 could not incorporate an update; the graph is left as it was before the update."""
+    """iSAM2 rejected an update (e.g. an indeterminant system); the caller counts it and carries on."""
 
 
 @dataclass(frozen=True)
