@@ -93,7 +93,8 @@ def run_throughput(console: Console, dataset: str, frames: int, write: Path | No
     console.print(table)
     notes = ("Frames are rendered and encoded (JPEG colour, 16-bit PNG depth) before timing; the clock runs from "
              "the first publish to the last frame in the graph, so this is the service's sustained rate over "
-             "zenoh with the default configuration (decode, validation, keyframing, iSAM2, object association and clustering, loop closure), with provided odometry and detections.")
+             "zenoh with the default configuration (decode, validation, keyframing, iSAM2, object association "
+             "and clustering, loop closure), with provided odometry and detections.")
     path = record("throughput", "Replay-to-graph throughput", f"objslam bench throughput --frames {frames} "
                   f"--dataset '{dataset}'", markdown_table(header, [row]), notes, write)
     console.print(f"recorded in {path}")
