@@ -11,14 +11,14 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from graph.geometry import motion_magnitude, pose_to_tum, relative
 from graph.pose_graph import PoseGraph
-from perception.odometry import Features, OdometryConfig, Rejected, RelativePoseEstimator
+from perception.odometry import Features, Rejected, RelativePoseEstimator
 from perception.place_recognition import PlaceIndex, global_descriptor
 
 log = logging.getLogger(__name__)
@@ -72,10 +72,8 @@ class LoopCloser:
         self.places = PlaceIndex()
         self.keyframes: dict[int, KeyframeEntry] = {}
         c = self.config
-        base = self.estimator.config
-        self.verify_config = OdometryConfig(base.n_features, base.ratio, c.min_inliers, c.min_inliers, base.ransac_px,
-                                            c.max_residual_px, sigma_m_coeff=base.sigma_m_coeff,
-                                            sigma_deg_coeff=base.sigma_deg_coeff)
+        self.verify_config = replace(self.estimator.config, min_matches=c.min_inliers, min_inliers=c.min_inliers,
+                                     max_residual_px=c.max_residual_px)
 
     @property
     def n_accepted(self) -> int:

@@ -9,9 +9,10 @@ import logging
 import math
 import time
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
+from pydantic import BaseModel
 
 from graph.pose_graph import NoiseSettings, PoseGraph
 from perception.frame import Frame
@@ -39,6 +40,20 @@ class FrameRecord:
     from_keyframe: np.ndarray
 
 
+def from_settings(cls, *sections: BaseModel):
+    """A component's frozen config dataclass from the same-named fields of configuration sections.
+
+    Where two sections share a field name the earlier section wins (keyframes.min_inliers over odometry's).
+    """
+    names = {f.name for f in fields(cls)}
+    values: dict = {}
+    for section in sections:
+        for k, v in section.model_dump().items():
+            if k in names:
+                values.setdefault(k, v)
+    return cls(**values)
+
+
 class Pipeline:
     """Turns validated frames into keyframes and factors (SPEC 6.4, 6.8).
 
@@ -51,16 +66,9 @@ class Pipeline:
 
     def __init__(self, settings: Settings):
         self.settings = settings
-        g = settings.graph
-        self.graph = PoseGraph(NoiseSettings(g.odometry_sigma_m, g.odometry_sigma_deg, g.prior_sigma_m,
-                                             g.prior_sigma_deg, g.relinearize_threshold, g.relinearize_skip))
-        k = settings.keyframes
-        self.policy = KeyframePolicy(k.translation_m, k.rotation_deg, k.max_interval, k.min_inliers,
-                                     settings.odometry.lost_sigma_scale, settings.odometry.icp)
-        o = settings.odometry
-        self.odometry_config = OdometryConfig(o.n_features, o.ratio, o.min_matches, o.min_inliers, o.ransac_px,
-                                              o.max_residual_px, sigma_m_coeff=o.sigma_m_coeff,
-                                              sigma_deg_coeff=o.sigma_deg_coeff)
+        self.graph = PoseGraph(from_settings(NoiseSettings, settings.graph))
+        self.policy = from_settings(KeyframePolicy, settings.keyframes, settings.odometry)
+        self.odometry_config = from_settings(OdometryConfig, settings.odometry)
         self.frontend: ExternalOdometry | VisualOdometry | None = None
         self.loops: LoopCloser | None = None
         self._extractor: FeatureExtractor | None = None
@@ -105,13 +113,8 @@ class Pipeline:
             log.info("frames carry no odometry: using RGB-D visual odometry")
         lc = self.settings.loops
         if lc.source in ("appearance", "both"):
-            config = LoopConfig(lc.source, lc.min_gap_s, lc.top_k, lc.min_similarity, lc.min_inliers,
-                                lc.max_residual_px, lc.gate_m, lc.gate_deg, lc.retract_m, lc.retract_deg,
-                                proximity=lc.proximity, proximity_m=lc.proximity_m, proximity_deg=lc.proximity_deg,
-                                proximity_k=lc.proximity_k, max_loop_m=lc.max_loop_m, max_loop_deg=lc.max_loop_deg,
-                                sigma_floor_m=lc.sigma_floor_m,
-                                sigma_floor_deg=lc.sigma_floor_deg)
-            self.loops = LoopCloser(self.graph, RelativePoseEstimator(frame.camera, self.odometry_config), config)
+            self.loops = LoopCloser(self.graph, RelativePoseEstimator(frame.camera, self.odometry_config),
+                                    from_settings(LoopConfig, lc))
             self._extractor = FeatureExtractor(frame.camera, self.odometry_config)
 
     def _check(self, frame: Frame) -> None:
@@ -183,11 +186,7 @@ class Pipeline:
         if self._detector is None:
             from perception.detector import Detector, DetectorConfig
 
-            d = self.settings.detector
-            self._detector = Detector(DetectorConfig(model=d.model, kind=d.kind, threads=d.threads,
-                                                     score_threshold=d.score_threshold,
-                                                     class_thresholds=d.class_thresholds, nms_iou=d.nms_iou,
-                                                     max_detections=d.max_detections))
+            self._detector = Detector(from_settings(DetectorConfig, self.settings.detector))
         return self._detector
 
     def trajectory(self) -> Trajectory:
