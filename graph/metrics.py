@@ -37,17 +37,26 @@ def umeyama(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     return T
 
 
+def nearest_timestamps(times_a: np.ndarray, times_b: np.ndarray, max_diff: float) -> np.ndarray:
+    """For each time in ``times_a`` the index of the nearest time in ``times_b``, or -1 beyond ``max_diff``."""
+    times_a, times_b = np.asarray(times_a, float), np.asarray(times_b, float)
+    if len(times_b) == 0:
+        return np.full(len(times_a), -1)
+    order = np.argsort(times_b)
+    sorted_b = times_b[order]
+    pos = np.clip(np.searchsorted(sorted_b, times_a), 0, len(sorted_b) - 1)
+    left = np.maximum(pos - 1, 0)
+    pick = np.where(np.abs(sorted_b[left] - times_a) <= np.abs(sorted_b[pos] - times_a), left, pos)
+    result = order[pick]
+    result[np.abs(times_b[result] - times_a) > max_diff] = -1
+    return result
+
+
 def match_timestamps(t_est: np.ndarray, t_ref: np.ndarray, max_diff: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
     """Index pairs (est, ref) of nearest timestamps within ``max_diff`` seconds."""
-    if len(t_ref) == 0 or len(t_est) == 0:
-        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-    order = np.argsort(t_ref)
-    pos = np.clip(np.searchsorted(t_ref[order], t_est), 0, len(t_ref) - 1)
-    left = np.clip(pos - 1, 0, len(t_ref) - 1)
-    pick = np.where(np.abs(t_ref[order][left] - t_est) < np.abs(t_ref[order][pos] - t_est), left, pos)
-    ref = order[pick]
-    ok = np.abs(t_ref[ref] - t_est) <= max_diff
-    return np.nonzero(ok)[0], ref[ok]
+    ref = nearest_timestamps(t_est, t_ref, max_diff)
+    est = np.nonzero(ref >= 0)[0]
+    return est, ref[est]
 
 
 def trajectory_error(est: np.ndarray, ref: np.ndarray) -> TrajectoryError:

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from service.sources import DatasetError, open_dataset
-from service.sources.tum import associate
+from graph.metrics import nearest_timestamps
 from tests.conftest import REDKITCHEN, requires_redkitchen
 
 
@@ -39,10 +39,10 @@ def _write_tum(root, n=5, camera=True, odometry=True, detections=True):
                                                       "height": 48, "depth_scale": 1000}))
 
 
-def test_associate_picks_nearest_within_tolerance():
+def test_nearest_timestamps_picks_nearest_within_tolerance():
     a = np.array([0.0, 1.0, 2.0, 5.0])
     b = np.array([0.005, 0.99, 2.5, 4.999, 1.02])
-    np.testing.assert_array_equal(associate(a, b), [0, 1, -1, 3])
+    np.testing.assert_array_equal(nearest_timestamps(a, b, 0.02), [0, 1, -1, 3])
 
 
 def test_tum_directory_with_extensions_loads_frames_odometry_and_detections(tmp_path):

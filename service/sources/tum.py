@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from graph.geometry import pose_from_tum
+from graph.metrics import nearest_timestamps
 from perception.frame import CameraModel, Detection, Frame, Intrinsics
 from service.sources.base import Dataset, DatasetError, ObjectTruth, Trajectory
 
@@ -39,21 +40,6 @@ def read_trajectory(path: Path) -> Trajectory:
         return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
     arr = np.asarray(rows)
     return Trajectory(arr[:, 0], np.stack([pose_from_tum(r[1:]) for r in arr]))
-
-
-def associate(times_a: np.ndarray, times_b: np.ndarray, max_diff: float = MAX_TIME_DIFF_S) -> np.ndarray:
-    """For each time in ``times_a`` the index of the nearest time in ``times_b``, or -1 beyond ``max_diff``."""
-    if len(times_b) == 0:
-        return np.full(len(times_a), -1)
-    order = np.argsort(times_b)
-    sorted_b = times_b[order]
-    pos = np.clip(np.searchsorted(sorted_b, times_a), 1, len(sorted_b) - 1) if len(sorted_b) > 1 else np.zeros(
-        len(times_a), dtype=int)
-    left = np.maximum(pos - 1, 0)
-    pick = np.where(np.abs(sorted_b[left] - times_a) <= np.abs(sorted_b[pos] - times_a), left, pos)
-    result = order[pick]
-    result[np.abs(times_b[result] - times_a) > max_diff] = -1
-    return result
 
 
 class TumDataset(Dataset):
@@ -138,7 +124,8 @@ class TumDataset(Dataset):
         if not (rgb_txt.is_file() and depth_txt.is_file()):
             raise DatasetError(f"{self.root} has neither associations.txt nor rgb.txt + depth.txt")
         rgb, depth = read_index(rgb_txt), read_index(depth_txt)
-        match = associate(np.array([t for t, _ in rgb]), np.array([t for t, _ in depth]))
+        match = nearest_timestamps(np.array([t for t, _ in rgb]), np.array([t for t, _ in depth]),
+                                   MAX_TIME_DIFF_S)
         keep = [i for i, j in enumerate(match) if j >= 0]
         if not keep:
             raise DatasetError(f"{self.root}: no rgb frame has a depth frame within {MAX_TIME_DIFF_S} s")
@@ -149,7 +136,7 @@ class TumDataset(Dataset):
         if not path.is_file():
             return None
         traj = read_trajectory(path)
-        match = associate(self._times, traj.timestamps)
+        match = nearest_timestamps(self._times, traj.timestamps, MAX_TIME_DIFF_S)
         return [traj.poses[j] if j >= 0 else None for j in match]
 
     def _load_detections(self) -> list[list[Detection]] | None:
@@ -168,7 +155,7 @@ class TumDataset(Dataset):
             except (ValueError, KeyError, TypeError) as exc:
                 raise DatasetError(f"{path}:{n}: bad detections line ({exc})") from None
             lists.append(dets)
-        match = associate(self._times, np.array(times))
+        match = nearest_timestamps(self._times, np.array(times), MAX_TIME_DIFF_S)
         return [lists[j] if j >= 0 else [] for j in match]
 
 
