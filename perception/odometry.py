@@ -31,7 +31,6 @@ class OdometryConfig:
     max_residual_px: float = 2.0
     min_depth_m: float = 0.2
     max_depth_m: float = 6.0
-    sigma_px: float = 1.0
     max_edge_ratio: float | None = 0.02
     sigma_m_coeff: float = 0.08
     sigma_deg_coeff: float = 3.0

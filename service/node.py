@@ -115,7 +115,7 @@ class ServiceNode:
             self.stats.time("decode", t1 - t0)
             with self._lock:
                 self.pipeline.timings.clear()
-                record = self.pipeline.process(frame)
+                self.pipeline.process(frame)
                 stage_times = dict(self.pipeline.timings)
             t2 = time.monotonic()
         except FrameRejected as exc:
@@ -130,7 +130,7 @@ class ServiceNode:
         for stage, seconds in stage_times.items():
             self.stats.time(stage, seconds)
         self.stats.time("ingest_to_graph", t2 - received)
-        self.stats.count_processed(record.is_keyframe)
+        self.stats.count_processed()
 
     def _publish_changes(self) -> None:
         """``events``: the object map after each re-clustering, and each newly accepted loop closure."""
@@ -167,11 +167,11 @@ class ServiceNode:
         snap = self.stats.snapshot()
         with self._lock:
             graph = self.pipeline.graph
+            objects = self.pipeline.object_list()
             snap.update(keyframes=graph.num_keyframes, poses=graph.num_keyframes, factors=graph.num_factors,
                         tracking_lost=self.pipeline.tracking_lost, loop_closures=self._loop_counts(),
                         keyframe_detections_by_class=dict(self.pipeline.detections_by_class),
-                        objects=len(self.pipeline.object_list()),
-                        objects_by_class=dict(Counter(o["label"] for o in self.pipeline.object_list())))
+                        objects=len(objects), objects_by_class=dict(Counter(o["label"] for o in objects)))
         snap.update(
             robot=self.settings.robot,
             protocol_version=VERSION,

@@ -33,7 +33,6 @@ class ServiceStats:
         self._lock = threading.Lock()
         self.received = 0
         self.processed = 0
-        self.keyframes = 0
         self.rejected: Counter[str] = Counter()
         self.errors: Counter[str] = Counter()
         self.stages: dict[str, LatencyWindow] = {}
@@ -42,10 +41,9 @@ class ServiceStats:
         with self._lock:
             self.received += 1
 
-    def count_processed(self, keyframe: bool) -> None:
+    def count_processed(self) -> None:
         with self._lock:
             self.processed += 1
-            self.keyframes += int(keyframe)
 
     def count_rejected(self, reason: str) -> None:
         with self._lock:
