@@ -94,5 +94,5 @@ def serve(settings: Settings, stop: threading.Event | None = None) -> None:
 def _write_state_outputs(node: ServiceNode, out: Path) -> None:
     traj, odom = node.trajectories()
     status = node.status()
-    write_outputs(out, traj, odom, {"dataset": f"serve {node.prefix}", **_summary(
-        node.prefix, status["frames_received"], status["uptime_s"], status)}, None)
+    summary = _summary(f"serve {node.prefix}", status["frames_received"], status["uptime_s"], status)
+    write_outputs(out, traj, odom, summary, None, node.objects_reply()["objects"], node.loops_reply()["loops"])
