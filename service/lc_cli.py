@@ -1,0 +1,153 @@
+"""``objslam train-lc`` and ``objslam eval-lc``: RL loop-closure training and evaluation (SPEC 2, 6.9)."""
+
+from __future__ import annotations
+
+import json
+from enum import Enum
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+POLICY_DIR = Path(__file__).resolve().parents[1] / "models" / "lc"
+TABLE_3_1 = {"config1": (77.8, 63.5), "config2": (78.2, 71.2), "config3": (82.5, 63.1),
+             "config4": (85.6, 68.7), "config5": (76.4, 64.4), "config6": (83.1, 70.6)}
+
+
+class BatchMode(str, Enum):
+    entropy = "entropy"
+    fixed = "fixed"
+
+
+def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
+    """Add the two commands to the ``objslam`` application."""
+
+    @app.command("train-lc")
+    def train_lc(
+        out: Annotated[Path, typer.Option("--out", help="policy file FILE.onnx (FILE.json, .pt, .png beside it)")],
+        grid: Annotated[str, typer.Option("--map", help="shipped configuration (config1..config6) or map file")]
+        = "config1",
+        steps: Annotated[int, typer.Option("--steps", help="environment steps over all actors")] = 300_000,
+        batch: Annotated[BatchMode, typer.Option("--batch", help="entropy-based (eq. 3.20) or fixed")]
+        = BatchMode.entropy,
+        n_steps: Annotated[int, typer.Option("--n-steps", help="fixed batch: steps per actor")] = 128,
+        b1: Annotated[int, typer.Option("--b1", help="entropy batch: shortest trajectory per actor")] = 64,
+        b2: Annotated[int, typer.Option("--b2", help="entropy batch: longest trajectory per actor")] = 256,
+        envs: Annotated[int, typer.Option("--envs", help="parallel actors")] = 8,
+        seed: Annotated[int, typer.Option("--seed")] = 0,
+        threads: Annotated[int, typer.Option("--threads", help="torch threads")] = 1,
+        resume: Annotated[bool, typer.Option("--resume", help="continue from FILE.pt")] = False,
+    ) -> None:
+        """Train a PPO loop-closure policy for a grid map and export it to ONNX."""
+        try:
+            from rl.export import export_trainer
+            from rl.ppo import TrainConfig, Trainer
+        except ImportError as exc:
+            raise user_error(f"training needs the train extra (pip install -e '.[train]'): {exc}") from exc
+        from tqdm import tqdm
+
+        from rl.gridmap import MapError
+        from service.lcplot import plot_reward_curves
+
+        if out.suffix != ".onnx":
+            raise user_error("--out must name a .onnx file")
+        if steps <= 0 or envs <= 0 or not (0 < b1 <= b2) or n_steps <= 0:
+            raise user_error("--steps, --envs, --n-steps must be positive and 0 < --b1 <= --b2")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        checkpoint = out.with_suffix(".pt")
+        try:
+            if resume:
+                if not checkpoint.is_file():
+                    raise user_error(f"no checkpoint to resume: {checkpoint}")
+                trainer = Trainer.resume(checkpoint, total_steps=steps)
+            else:
+                cfg = TrainConfig(map=grid, total_steps=steps, n_envs=envs, batch=batch.value, n_steps=n_steps,
+                                  b1=b1, b2=b2, seed=seed, threads=threads,
+                                  minibatches=min(4, envs) if envs % min(4, envs) == 0 else 1)
+                trainer = Trainer(cfg)
+        except (MapError, ValueError) as exc:
+            raise user_error(str(exc)) from exc
+        bar = tqdm(total=steps, initial=trainer.global_step, unit="step", desc=f"train-lc {trainer.grid.name}")
+
+        def progress(step: int, stats: dict) -> None:
+            bar.update(step - bar.n)
+            taken, due = max(stats["lc_taken"], 1), max(stats["lc_due"], 1)
+            ret = stats["mean_return"]
+            bar.set_postfix(ret="-" if ret is None else f"{ret:.0f}", P=f"{stats['lc_correct'] / taken:.2f}",
+                            R=f"{stats['lc_correct'] / due:.2f}", n=stats["batch_length"])
+
+        result = trainer.train(checkpoint, progress)
+        bar.close()
+        export_trainer(trainer, out, result.wall_s)
+        plot_reward_curves({f"{trainer.grid.name} ({trainer.cfg.batch})": trainer.curve}, out.with_suffix(".png"),
+                           f"loop-closure PPO on {trainer.grid.name}")
+        console.print(f"{trainer.global_step} steps in {result.wall_s:.0f} s -> {out} "
+                      f"(+ {out.with_suffix('.json').name}, {checkpoint.name}, {out.with_suffix('.png').name})")
+
+    @app.command("eval-lc")
+    def eval_lc(
+        policies: Annotated[list[Path] | None, typer.Argument(help="policy files (default: the shipped ones)")]
+        = None,
+        runs: Annotated[int, typer.Option("--runs", help="runs per configuration")] = 20,
+        max_steps: Annotated[int, typer.Option("--max-steps", help="steps per run at most")] = 20_000,
+        seed: Annotated[int, typer.Option("--seed")] = 10_000,
+        baselines: Annotated[bool, typer.Option("--baselines/--no-baselines",
+                                                help="also random, no-loop-closure and oracle")] = True,
+        as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False,
+        write: Annotated[Path | None, typer.Option("--write", help="record the table in this benchmarks file")]
+        = None,
+    ) -> None:
+        """Table-3.1-style precision and recall of loop-closure policies in their grid worlds."""
+        from rl.evaluate import evaluate
+        from rl.policy import NoLoopPolicy, OnnxPolicy, OraclePolicy, RandomPolicy
+
+        files = policies or sorted(POLICY_DIR.glob("*.onnx"))
+        if not files:
+            raise user_error(f"no policy files given and none in {POLICY_DIR}")
+        results: dict[str, dict] = {}
+        rows = []
+        for path in files:
+            if not path.is_file() or not path.with_suffix(".json").is_file():
+                raise user_error(f"{path}: a policy needs FILE.onnx and FILE.json")
+            policy = OnnxPolicy(path)
+            exclude = int(policy.meta.get("exclude_last", 4))
+            res = evaluate(policy.grid, policy, runs, seed, max_steps, exclude)
+            results[policy.grid.name] = res.to_json()
+            base = {}
+            if baselines:
+                for b in (RandomPolicy(seed), NoLoopPolicy(), OraclePolicy()):
+                    base[b.name] = evaluate(policy.grid, b, runs, seed, max_steps, exclude)
+                results[policy.grid.name]["baselines"] = {k: v.to_json() for k, v in base.items()}
+            rows.append(_row(policy, res, base))
+        if as_json:
+            typer.echo(json.dumps(results, indent=1))
+        header = ["config", "grid", "locations", "dissertation P/R %", "policy P/R %", "due", "taken",
+                  "runs complete", "random P/R %", "no-LC P/R %", "oracle P/R %", "train steps", "train wall s"]
+        if not as_json:
+            from service.bench.report import show_table
+
+            show_table(console, "RL loop closure (Table 3.1 protocol)", header, rows)
+        if write is not None:
+            from service.bench.report import markdown_table, record
+
+            mean_p = sum(r["precision"] for r in results.values()) / len(results)
+            mean_r = sum(r["recall"] for r in results.values()) / len(results)
+            record("eval-lc", "RL loop closure in the grid worlds (issue 5)",
+                   f"objslam eval-lc --runs {runs} --max-steps {max_steps} --write {write}",
+                   markdown_table(header, rows),
+                   f"Mean over configurations: precision {100 * mean_p:.1f} %, recall {100 * mean_r:.1f} % "
+                   f"(target >= 95 % / >= 80 %; dissertation 80 % / 67 %).", path=write)
+
+
+def _pr(res) -> str:
+    return f"{100 * res.precision:.1f} / {100 * res.recall:.1f}"
+
+
+def _row(policy, res, base: dict) -> list:
+    grid = policy.grid
+    diss = TABLE_3_1.get(grid.name)
+    return [grid.name, f"{grid.shape[0]}x{grid.shape[1]}", grid.n_loops,
+            f"{diss[0]} / {diss[1]}" if diss else "-", _pr(res), res.lc_due, res.lc_taken,
+            f"{res.runs_complete}/{res.runs}",
+            *(_pr(base[k]) if k in base else "-" for k in ("random", "no-loop-closure", "oracle")),
+            policy.meta.get("steps", "-"), policy.meta.get("wall_s", "-")]
