@@ -33,6 +33,7 @@ COLOR_ENCODINGS = ("jpeg", "png", "rgb8")
 DEPTH_ENCODINGS = ("png16", "u16le")
 MAX_DETECTIONS = 512
 MAX_HEADER_BYTES = 1 << 20
+MAX_JSON_INT = 2**63
 
 
 class Reason(str, Enum):
@@ -177,7 +178,7 @@ def split_message(payload: bytes) -> tuple[dict[str, Any], bytes]:
     if len(payload) < PREAMBLE.size + hlen:
         raise FrameRejected(Reason.TRUNCATED, "payload ends inside the header")
     try:
-        header = json.loads(payload[PREAMBLE.size: PREAMBLE.size + hlen].decode("utf-8"))
+        header = json.loads(payload[PREAMBLE.size: PREAMBLE.size + hlen].decode("utf-8"), parse_int=_json_int)
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise FrameRejected(Reason.BAD_HEADER, f"header is not UTF-8 JSON: {exc}") from None
     if not isinstance(header, dict):
@@ -185,6 +186,14 @@ def split_message(payload: bytes) -> tuple[dict[str, Any], bytes]:
     if header.get("version") != VERSION:
         raise FrameRejected(Reason.UNSUPPORTED_VERSION, f"header version {header.get('version')!r}")
     return header, payload[PREAMBLE.size + hlen:]
+
+
+def _json_int(text: str) -> int:
+    """JSON integers are bounded to 64 bits: a longer literal would overflow float() (or int()) downstream."""
+    value = int(text) if len(text) <= 20 else MAX_JSON_INT
+    if abs(value) >= MAX_JSON_INT:
+        raise FrameRejected(Reason.BAD_HEADER, f"integer {text[:24]} is beyond 64 bits")
+    return value
 
 
 def _field(obj: dict[str, Any], name: str, kind: type | tuple[type, ...]) -> Any:

@@ -101,6 +101,33 @@ def test_nan_timestamp_is_a_bad_field():
     assert _reason(_rewrite_header(payload, lambda h: h.update(seq=-1))) is Reason.BAD_FIELD
 
 
+
+@pytest.mark.parametrize("edit", [
+    lambda h: h.update(timestamp=10**400),
+    lambda h: h["camera"].update(fx=10**400),
+    lambda h: h["camera"].update(depth_scale=10**30),
+    lambda h: h.update(odometry=[10**400, 0, 0, 0, 0, 0, 1]),
+    lambda h: h["detections"][0].update(box=[0, 0, 10**400, 5]),
+    lambda h: h["camera"].update(depth_to_color=[[10**400] * 4] * 4),
+    lambda h: h.update(unknown=-(2**63)),
+])
+def test_integers_beyond_64_bits_are_a_bad_header_not_an_overflow(edit):
+    # fuzz finding: such literals made float() raise OverflowError (or int() ValueError) past the validators
+    payload = encode_frame(make_frame(), "rgb8", "u16le")
+    assert _reason(_rewrite_header(payload, edit)) is Reason.BAD_HEADER
+
+
+def test_integer_beyond_pythons_digit_limit_is_a_bad_header():
+    payload = encode_frame(make_frame(), "rgb8", "u16le")
+    header, body = split_message(payload)
+    head = json.dumps(header).replace('"seq": 0', '"seq": ' + "9" * 5000).encode()  # int() refuses > 4300 digits
+    assert _reason(PREAMBLE.pack(b"OSLM", 1, 0, len(head)) + head + body) is Reason.BAD_HEADER
+
+
+def test_largest_64_bit_integers_still_decode():
+    payload = encode_frame(make_frame(), "rgb8", "u16le")
+    assert decode_frame(_rewrite_header(payload, lambda h: h.update(seq=2**63 - 1))).seq == 2**63 - 1
+
 @pytest.mark.parametrize("dets", [
     [{"label": "cup", "score": 0.5, "box": [10, 10, 5, 5]}],           # corners out of order
     [{"label": "cup", "score": 0.5, "box": [1000, 1000, 2000, 2000]}],  # outside the image

@@ -2,43 +2,17 @@
 
 from __future__ import annotations
 
-import json
-import os
-import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
-import zenoh
 from rich.console import Console
 from rich.table import Table
 
 from service.bench.report import markdown_table, record
+from service.bench.rig import free_port, query_status, router, start_serve, stop_serve, wait_for_status
 from service.protocol import encode_frame
 from service.replay import frame_publisher
 from service.sources import open_dataset
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _router(port: int) -> zenoh.Session:
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(conf)
-
-
-def _status(session: zenoh.Session, key: str) -> dict | None:
-    for reply in session.get(key, timeout=2.0):
-        if reply.ok is not None:
-            return json.loads(reply.ok.payload.to_bytes())
-    return None
 
 
 def measure(dataset: str, frames: int) -> dict:
@@ -46,30 +20,26 @@ def measure(dataset: str, frames: int) -> dict:
     data = open_dataset(dataset)
     frames = min(frames, len(data))
     payloads = [encode_frame(data.frame(i)) for i in range(frames)]
-    port = _free_port()
-    session = _router(port)
-    env = {**os.environ, "OBJSLAM_INGEST__QUEUE_SIZE": str(frames + 1)}
-    serve = subprocess.Popen([sys.executable, "-m", "service", "serve", "--mode", "client", "--connect",
-                              f"tcp/127.0.0.1:{port}", "--robot", "bench"], env=env,
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    port = free_port()
+    session = router(port)
+    serve, log = start_serve(f"tcp/127.0.0.1:{port}", "bench", {"OBJSLAM_INGEST__QUEUE_SIZE": str(frames + 1)})
     try:
         key = "objslam/bench/status"
-        while _status(session, key) is None:
-            time.sleep(0.2)
+        wait_for_status(session, key, serve, log)
         pub = frame_publisher(session, "objslam/bench/rgbd")
         start = time.monotonic()
         for p in payloads:
             pub.put(p)
         published = time.monotonic() - start
-        status = _status(session, key)
+        status = query_status(session, key)
         while status["frames_processed"] + status["frames_rejected_total"] < frames:
             time.sleep(0.02)
-            status = _status(session, key)
+            status = query_status(session, key)
         elapsed = time.monotonic() - start
     finally:
-        serve.terminate()
-        serve.wait(timeout=30)
+        stop_serve(serve)
         session.close()
+        log.unlink(missing_ok=True)
     lat = status["latency"]
     return {"dataset": dataset, "frames": frames, "resolution": f"{data.camera.width}x{data.camera.height}",
             "publish_fps": frames / published, "processed": status["frames_processed"],
