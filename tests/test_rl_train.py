@@ -1,0 +1,84 @@
+"""PPO trainer: eq. 3.20 batch length, a CleanRL-style smoke run in a subprocess, resume, ONNX parity."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch", reason="the train extra (torch) is not installed")
+
+from rl.env import GridRules, LoopClosureGrid  # noqa: E402
+from rl.export import export_trainer, torch_probabilities  # noqa: E402
+from rl.policy import OnnxPolicy  # noqa: E402
+from rl.ppo import TrainConfig, Trainer, batch_length  # noqa: E402
+
+
+def _objslam(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    return subprocess.run([sys.executable, "-m", "service", *args], env=env, capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_batch_length_picks_the_prefix_with_most_action_entropy():
+    targets = np.zeros((40, 2), np.int64)
+    targets[5, 0] = 1  # one loop closure early: short prefixes have the most balanced actions
+    assert batch_length(targets, 3, 4, 40) == 6
+    targets[30:34, :] = 2  # a burst later outweighs it
+    assert batch_length(targets, 3, 4, 40) == 34
+    assert batch_length(np.zeros((40, 2), np.int64), 3, 8, 40) == 8  # no loop closures: ties -> shortest
+
+
+def test_train_lc_smoke_run_exports_a_policy_that_eval_lc_reads(tmp_path):
+    out = tmp_path / "p.onnx"
+    res = _objslam("train-lc", "--map", "config1", "--steps", "400", "--envs", "2", "--b1", "16", "--b2", "48",
+                   "--out", str(out))
+    assert res.returncode == 0, res.stderr[-2000:]
+    for suffix in (".onnx", ".json", ".pt", ".png"):
+        assert out.with_suffix(suffix).is_file(), suffix
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["steps"] >= 400 and meta["map"]["name"] == "config1" and meta["curve"]
+    res = _objslam("eval-lc", str(out), "--runs", "2", "--max-steps", "500", "--json", "--no-baselines")
+    assert res.returncode == 0, res.stderr[-2000:]
+    figures = json.loads(res.stdout)["config1"]
+    assert set(figures) >= {"precision", "recall", "lc_due", "lc_taken", "runs"} and figures["runs"] == 2
+    assert figures["lc_due"] > 0
+    bad = _objslam("train-lc", "--map", "nosuchmap", "--steps", "10", "--out", str(tmp_path / "x.onnx"))
+    assert bad.returncode == 1 and "cannot read map" in bad.stderr
+
+
+def test_resume_continues_counters_and_curve(tmp_path):
+    cfg = TrainConfig(map="config2", total_steps=200, n_envs=2, minibatches=2, b1=8, b2=24, threads=1)
+    trainer = Trainer(cfg)
+    trainer.train(tmp_path / "c.pt")
+    steps, updates = trainer.global_step, len(trainer.curve)
+    resumed = Trainer.resume(tmp_path / "c.pt", total_steps=400)
+    assert resumed.global_step == steps and len(resumed.curve) == updates
+    for name, p in trainer.actor.state_dict().items():
+        assert torch.equal(p, resumed.actor.state_dict()[name]), name
+    resumed.train(tmp_path / "c.pt")
+    assert resumed.global_step >= 400 and len(resumed.curve) > updates
+
+
+def test_onnx_actor_matches_torch_on_recorded_sequences(tmp_path):
+    trainer = Trainer(TrainConfig(map="config3", total_steps=96, n_envs=2, minibatches=2, b1=8, b2=24, threads=1))
+    trainer.train()
+    envs = [LoopClosureGrid("config3", rules=GridRules(terminate=False)) for _ in range(3)]
+    seq = [np.stack([env.reset(seed=i)[0] for i, env in enumerate(envs)])]
+    for _ in range(40):
+        seq.append(np.stack([env.step(0)[0] for env in envs]))
+    observations = np.stack(seq)
+    reference = torch_probabilities(trainer.actor, observations)
+    policy = OnnxPolicy(export_trainer(trainer, tmp_path / "p.onnx", wall_s=0.0))
+    policy.reset(3)
+    got = np.stack([policy.probabilities(obs) for obs in observations])
+    assert np.abs(got - reference).max() < 1e-5
+    h, c = trainer.actor.initial_state(3)
+    for obs in observations:  # the carried LSTM state agrees too
+        _, h, c = trainer.actor.step(torch.from_numpy(obs), h, c)
+    assert np.abs(policy.h - h.detach().numpy()).max() < 1e-5 and np.abs(policy.c - c.detach().numpy()).max() < 1e-5
+    assert not np.allclose(reference[0], reference[-1])  # memory and views change the output over time
