@@ -19,7 +19,9 @@ Balanced policy loss. Even the best prefix holds few due loop closures (2-14 % o
 places apart (the collapse of Fig. 3.10a). With ``balance`` the clipped surrogate of each step is
 weighted so that due and not-due steps carry equal total weight: the batch is re-weighted to maximum
 correct-action entropy, the limit eq. 3.20 moves towards. Weighting states does not change which
-action is best in any state, only how fast each is learned.
+action is best in a state the policy can tell apart, only how fast each is learned; where its memory
+cannot tell a due visit from a first one it would favour loop closures, so the weights are annealed
+to 1 (plain PPO) by ``balance`` x total_steps.
 """
 
 from __future__ import annotations
@@ -60,7 +62,7 @@ class TrainConfig:
     epochs: int = 4  # optimisation passes over each batch
     minibatches: int = 4  # actors are split into this many groups per pass
     clip: float = 0.2  # PPO ratio clip (eq. 3.17)
-    balance: bool = True  # weight the policy loss so due and not-due steps count equally (see module doc)
+    balance: float = 0.75  # balanced policy loss, annealed to none at this fraction of training; 0 = off
     no_lc_prior: float = 0.8  # initial probability of action 0, so early episodes last long enough to see loops
     ent_coef: float = 0.2  # entropy bonus at the start: keeps the rare loop-closure actions explored
     ent_coef_final: float = 0.005  # ... annealed linearly to this over total_steps
@@ -251,6 +253,12 @@ class Trainer:
         b.drop_front(T)
         return stats
 
+    def balance_power(self) -> float:
+        """1 = fully balanced weights, 0 = plain PPO; decreases linearly to 0 at ``balance`` of training."""
+        if self.cfg.balance <= 0:
+            return 0.0
+        return max(0.0, 1.0 - self.global_step / (self.cfg.balance * self.cfg.total_steps))
+
     def ent_coef(self) -> float:
         frac = min(1.0, self.global_step / self.cfg.total_steps)
         return self.cfg.ent_coef + frac * (self.cfg.ent_coef_final - self.cfg.ent_coef)
@@ -272,7 +280,7 @@ class Trainer:
         actions = torch.from_numpy(b.actions[:T])
         old_logp = torch.from_numpy(b.logprobs[:T])
         adv_t, ret_t = torch.from_numpy(advantages), torch.from_numpy(returns)
-        weight = torch.from_numpy(balance_weights(b.targets[:T]) if cfg.balance else np.ones((T, cfg.n_envs), np.float32))
+        weight = torch.from_numpy(balance_weights(b.targets[:T]) ** self.balance_power())
         groups = np.array_split(np.arange(cfg.n_envs), cfg.minibatches)
         rng = np.random.default_rng(cfg.seed + self.global_step)
         clipped = []
