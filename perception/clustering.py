@@ -224,6 +224,15 @@ class Clusterer:
         self._fit = self._out = self._new = 0
         self._next_id = 1
 
+    def state(self) -> dict:
+        """Plain state: stored feature vectors, objects, eq. 2.15 counters and the next object id."""
+        return {"features": self.features, "objects": self.objects, "reclusterings": self.reclusterings,
+                "counts": (self._fit, self._out, self._new), "next_id": self._next_id}
+
+    def restore(self, state: dict) -> None:
+        self.features, self.objects, self.reclusterings = state["features"], state["objects"], state["reclusterings"]
+        (self._fit, self._out, self._new), self._next_id = state["counts"], state["next_id"]
+
     def add(self, features: Sequence[FeatureVector | None]) -> None:
         """Store new feature vectors for the next clustering."""
         new = [f for f in features if f is not None]

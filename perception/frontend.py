@@ -72,6 +72,13 @@ class ExternalOdometry:
             return Step(pose, True, rel)
         return Step(pose, False)
 
+    def state(self) -> dict:
+        """Plain tracking state (the last keyframe's pose, frames since it)."""
+        return {"kf_pose": self._kf_pose, "since": self._since}
+
+    def restore(self, state: dict) -> None:
+        self._kf_pose, self._since = state["kf_pose"], state["since"]
+
 
 class VisualOdometry:
     """Frame-to-keyframe RGB-D odometry: ORB + depth on the keyframe, PnP-RANSAC against the new frame.
@@ -93,6 +100,19 @@ class VisualOdometry:
         self._last_pose = np.eye(4)
         self._since = 0
         self.lost_count = 0
+
+    _STATE = ("_kf_pose", "_kf_features", "_kf_depth", "_history", "icp_used", "_last_pose", "_since", "lost_count")
+
+    def state(self) -> dict:
+        """Plain tracking state: the keyframe's pose, features and depth, older keyframes, counters.
+
+        The ORB extractor and matcher (cv2 objects) are not state: they are rebuilt from the camera.
+        """
+        return {name.lstrip("_"): getattr(self, name) for name in self._STATE}
+
+    def restore(self, state: dict) -> None:
+        for name in self._STATE:
+            setattr(self, name, state[name.lstrip("_")])
 
     def track(self, frame: Frame) -> Step:
         features = self.extractor.extract(frame)

@@ -48,6 +48,18 @@ class ObjectMapper:
         self._prev = _Keyframe(detections, depth_m, pose)
         return self.clusterer.step(obs, [self.tracker.associated(t) for t in ids])
 
+    def state(self) -> dict:
+        """Plain state: tracker, clusterer, the previous keyframe (detections, depth, pose), counters."""
+        prev = None if self._prev is None else (self._prev.detections, self._prev.depth_m, self._prev.pose)
+        return {"tracker": self.tracker.state(), "clusterer": self.clusterer.state(), "prev": prev,
+                "associations": self.associations}
+
+    def restore(self, state: dict) -> None:
+        self.tracker.restore(state["tracker"])
+        self.clusterer.restore(state["clusterer"])
+        self._prev = None if state["prev"] is None else _Keyframe(*state["prev"])
+        self.associations = state["associations"]
+
     def finish(self) -> list[ObjectEllipsoid]:
         """End of sequence: emit every open track window and re-cluster once more."""
         self.clusterer.add(self.tracker.flush())

@@ -51,6 +51,19 @@ class PlaceIndex:
         self._desc[self.size], self._times[self.size], self._ids[self.size] = descriptor, timestamp, place_id
         self.size += 1
 
+    def state(self) -> dict:
+        """The stored places as plain arrays."""
+        n = self.size
+        return {"descriptors": self._desc[:n].copy(), "timestamps": self._times[:n].copy(), "ids": self._ids[:n].copy()}
+
+    def restore(self, state: dict) -> None:
+        n = len(state["ids"])
+        capacity = max(len(self._desc), n)
+        self._desc = np.zeros((capacity, self._desc.shape[1]), np.float32)
+        self._times, self._ids = np.zeros(capacity), np.zeros(capacity, dtype=np.int64)
+        self._desc[:n], self._times[:n], self._ids[:n] = state["descriptors"], state["timestamps"], state["ids"]
+        self.size = n
+
     def query(self, descriptor: np.ndarray, timestamp: float, min_gap_s: float, top_k: int,
               min_similarity: float) -> list[Candidate]:
         """Up to ``top_k`` places older than ``min_gap_s`` with similarity >= ``min_similarity``, best first."""

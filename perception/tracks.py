@@ -43,6 +43,13 @@ class Tracker:
         self._prev_ids: list[int] = []
         self._next_id = 1
 
+    def state(self) -> dict:
+        """Plain state: live tracks, the previous keyframe's track ids, the next id."""
+        return {"tracks": self.tracks, "prev_ids": self._prev_ids, "next_id": self._next_id}
+
+    def restore(self, state: dict) -> None:
+        self.tracks, self._prev_ids, self._next_id = state["tracks"], state["prev_ids"], state["next_id"]
+
     def update(self, keyframe: int, labels: Sequence[str], pairs: Sequence[tuple[int, int]]) -> list[int]:
         """Track id of each current detection: inherited through a (previous, current) pair, else new."""
         ids = [-1] * len(labels)

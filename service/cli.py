@@ -12,6 +12,7 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 
+from service import lc_cli
 from service.config import ConfigError, Settings, dump_defaults, load_settings
 from service.sources import DatasetError
 
@@ -80,7 +81,8 @@ def _with_lc(settings: Settings, lc_source: LcSource | None, lc_policy: Path | N
 @app.command()
 def serve(config: ConfigOpt = None, robot: RobotOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
           mode: ModeOpt = None,
-          state_dir: Annotated[Path | None, typer.Option("--state-dir", help="outputs written here on shutdown")] = None,
+          state_dir: Annotated[Path | None, typer.Option(
+              "--state-dir", help="snapshots (resumed from on start) and, on shutdown, the outputs")] = None,
           lc_source: Annotated[LcSource | None, typer.Option("--lc-source")] = None,
           lc_policy: Annotated[Path | None, typer.Option("--lc-policy")] = None) -> None:
     """Run the long-lived mapping service (until SIGINT / SIGTERM)."""
@@ -191,6 +193,22 @@ def bench_throughput(frames: Annotated[int, typer.Option("--frames")] = 300,
     run_throughput(console, dataset, frames, write)
 
 
+@bench_app.command("overload")
+def bench_overload(seconds: Annotated[float, typer.Option("--seconds", help="overload duration")] = 60.0,
+                   factor: Annotated[float, typer.Option("--factor", help="publish rate / processing rate")] = 3.0,
+                   frames: Annotated[int | None, typer.Option(
+                       "--frames", help="instead: a paced run of N frames (none dropped) for RSS growth")] = None,
+                   dataset: Annotated[str, typer.Option("--dataset")] = "synthetic:room?seed=0",
+                   write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None
+                   ) -> None:
+    """Publish faster than serve processes: bounded memory, counted drops, status latency under load."""
+    from service.bench.overload import run_overload
+
+    if seconds <= 0 or factor <= 0 or (frames is not None and frames <= 0):
+        raise UserError("--seconds, --factor and --frames must be positive")
+    run_overload(console, dataset, seconds, frames, factor, write)
+
+
 DatasetsOpt = Annotated[list[str] | None, typer.Option("--dataset", help="dataset spec (repeatable)")]
 WriteOpt = Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")]
 
@@ -248,6 +266,22 @@ def bench_stages(dataset: Annotated[str, typer.Option("--dataset", help="dataset
     run_stages_bench(console, dataset, frames, write)
 
 
+@bench_app.command("persistence")
+def bench_persistence(dataset: Annotated[str, typer.Option("--dataset", help="dataset spec")] =
+                      "synthetic:room?seed=0&frames=800&fps=10&revolutions=4.5",
+                      keyframes: Annotated[str, typer.Option("--keyframes", help="checkpoints, comma separated")] =
+                      "100,200,300",
+                      write: WriteOpt = None) -> None:
+    """Snapshot capture / write / load / restore time and size against the number of keyframes."""
+    from service.bench.persistence import run_persistence_bench
+
+    try:
+        checkpoints = [int(k) for k in keyframes.split(",")]
+    except ValueError:
+        raise UserError(f"--keyframes must be integers separated by commas, got {keyframes!r}") from None
+    run_persistence_bench(console, dataset, checkpoints, write)
+
+
 @bench_app.command("frontends")
 def bench_frontends(dataset: Annotated[str, typer.Option("--dataset", help="dataset with ground truth")],
                     frames: Annotated[int, typer.Option("--frames")] = 400, write: WriteOpt = None) -> None:
@@ -265,6 +299,9 @@ def bench_detector(dataset: Annotated[str, typer.Option("--dataset", help="datas
     from service.bench.detector import run_detector_bench
 
     run_detector_bench(console, dataset, every, write)
+
+
+lc_cli.register(app, console, UserError)
 
 
 def main() -> None:

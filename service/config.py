@@ -115,6 +115,13 @@ class GraphSettings(BaseModel):
     relinearize_skip: int = Field(1, ge=1)
 
 
+class PersistenceSettings(BaseModel):
+    """Snapshots of the map in ``state_dir`` (``serve --state-dir``), resumed from on start."""
+
+    every_keyframes: int = Field(10, ge=1, description="write a snapshot after this many new keyframes")
+    keep: int = Field(3, ge=2, description="snapshots kept; older ones are deleted after each write")
+
+
 class CameraDefaults(BaseModel):
     """Camera used when a dataset has no camera.json (TUM defaults)."""
 
@@ -131,7 +138,7 @@ class Settings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="OBJSLAM_", env_nested_delimiter="__", extra="forbid")
 
     robot: str = Field("robot1", pattern=r"^[A-Za-z0-9_\-]+$")
-    state_dir: Path | None = None
+    state_dir: Path | None = Field(None, description="serve: snapshots (resumed from on start) and outputs")
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
     ingest: IngestSettings = Field(default_factory=IngestSettings)
     keyframes: KeyframeSettings = Field(default_factory=KeyframeSettings)
@@ -140,6 +147,7 @@ class Settings(BaseSettings):
     detector: DetectorSettings = Field(default_factory=DetectorSettings)
     objects: ObjectSettings = Field(default_factory=ObjectSettings)
     graph: GraphSettings = Field(default_factory=GraphSettings)
+    persistence: PersistenceSettings = Field(default_factory=PersistenceSettings)
     camera: CameraDefaults = Field(default_factory=CameraDefaults)
 
     @property

@@ -83,6 +83,16 @@ class LoopCloser:
     def n_rejected(self) -> int:
         return len(self.records) - self.n_accepted
 
+    def state(self) -> dict[str, Any]:
+        """Plain state: loop records, accepted factors, place descriptors and keyframe features."""
+        return {"records": self.records, "accepted": self.accepted, "places": self.places.state(),
+                "keyframes": list(self.keyframes.values())}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        self.records, self.accepted = state["records"], state["accepted"]
+        self.places.restore(state["places"])
+        self.keyframes = {e.index: e for e in state["keyframes"]}
+
     def add_keyframe(self, entry: KeyframeEntry, rgb: np.ndarray) -> list[dict[str, Any]]:
         """Store the keyframe, try its candidates, and return the new loop records."""
         descriptor = global_descriptor(rgb)

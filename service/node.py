@@ -1,6 +1,8 @@
 """The service node: zenoh subscriber and queryables wired to the ingest queue and the pipeline.
 
 Zenoh callbacks only enqueue bytes or serialise a reply; decoding and graph work run on one worker thread.
+With a state directory the node resumes from its newest good snapshot and writes one every N keyframes
+(on the worker thread, between frames) and on ``stop``.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from graph.geometry import pose_to_tum
 from graph.pose_graph import SolverError
 from service.config import Settings
 from service.ingest import IngestQueue
+from service.persistence import Persistence
 from service.pipeline import Pipeline
 from service.protocol import VERSION, FrameRejected, Limits, decode_frame
 from service.sources.base import Trajectory
@@ -44,6 +47,11 @@ class ServiceNode:
         self._started = time.time()
         self._entities: list[Any] = []
         self._worker = threading.Thread(target=self._work, name="objslam-worker", daemon=True)
+        self.persistence: Persistence | None = None
+        if settings.state_dir is not None:
+            ps = settings.persistence
+            self.persistence = Persistence(settings.state_dir, settings.robot, ps.every_keyframes, ps.keep)
+            self.persistence.resume(self._restore)
 
     # ------------------------------------------------------------ lifecycle
 
@@ -60,10 +68,16 @@ class ServiceNode:
         log.info("serving %s (protocol v%d)", p, VERSION)
 
     def stop(self) -> None:
-        """Stop the worker after the current frame and undeclare zenoh entities."""
+        """Stop the worker after the current frame, write a last snapshot, and undeclare zenoh entities."""
         self._stop.set()
         if self._worker.is_alive():
             self._worker.join(timeout=10)
+        if len(self.queue):
+            log.info("stopping with %d queued frames unprocessed", len(self.queue))
+        if self._worker.is_alive():
+            log.error("the worker did not stop within 10 s: no final snapshot, the last periodic one stands")
+        else:
+            self.snapshot(final=True)
         for entity in reversed(self._entities):
             try:
                 entity.undeclare()
@@ -131,6 +145,55 @@ class ServiceNode:
             self.stats.time(stage, seconds)
         self.stats.time("ingest_to_graph", t2 - received)
         self.stats.count_processed()
+        self.snapshot()
+
+    # ------------------------------------------------------------ persistence
+
+    def snapshot(self, final: bool = False) -> bool:
+        """Write a snapshot when N keyframes were added since the last one (or, ``final``, anything changed).
+
+        Called by the worker between frames, or after it stopped: no other thread changes the pipeline, so
+        only taking its plain state needs the lock (iSAM2 updates a cache that queries read); pickling and
+        writing run without it. A failed write is logged and counted (``persistence.failed_writes``).
+        """
+        p = self.persistence
+        if p is None:
+            return False
+        keyframes, frames = self.pipeline.graph.num_keyframes, self.stats.processed
+        if not (p.due(keyframes) or (final and p.changed(keyframes, frames))):
+            return False
+        t0 = time.perf_counter()
+        with self._lock:
+            state = self._state()
+        payload = p.capture(keyframes, frames, state)
+        capture_s = time.perf_counter() - t0
+        if p.save(payload, keyframes, frames, capture_s) is None:
+            return False
+        self.stats.time("snapshot", time.perf_counter() - t0)
+        return True
+
+    def _state(self) -> dict[str, Any]:
+        """The pipeline and the frame counters. Frames still queued are not in the pipeline's state, so the
+        saved ``received`` counts only the frames the state accounts for."""
+        stats = self.stats.counters()
+        stats["received"] = stats["processed"] + sum(stats["rejected"].values()) + sum(stats["errors"].values()) \
+            + self.queue.dropped
+        return {"pipeline": self.pipeline.state(), "stats": stats, "frames_dropped": self.queue.dropped,
+                "settings": _map_settings(self.settings)}
+
+    def _restore(self, state: dict[str, Any]) -> None:
+        """Continue from a snapshot's state (built completely before anything is replaced)."""
+        saved, current = state["settings"], _map_settings(self.settings)
+        changed = sorted(k for k in saved.keys() | current.keys() if saved.get(k) != current.get(k))
+        if changed:
+            log.warning("resuming a map made with other settings of %s; the current ones apply from now on",
+                        ", ".join(changed))
+        pipeline = Pipeline.from_state(self.settings, state["pipeline"])
+        self.pipeline = pipeline
+        self.stats.restore_counters(state["stats"])
+        self.queue.dropped = state["frames_dropped"]
+        self._last_version = pipeline.object_map_version
+        self._last_loops = pipeline.loops.n_accepted if pipeline.loops is not None else 0
 
     def _publish_changes(self) -> None:
         """``events``: the object map after each re-clustering, and each newly accepted loop closure."""
@@ -180,6 +243,7 @@ class ServiceNode:
             queue_capacity=self.queue.capacity,
             landmarks=0,
             uptime_s=round(time.time() - self._started, 3),
+            persistence=self.persistence.status() if self.persistence is not None else None,
         )
         return snap
 
@@ -214,3 +278,9 @@ class ServiceNode:
         if loops is None:
             return {"accepted": 0, "rejected": 0}
         return {"accepted": loops.n_accepted, "rejected": loops.n_rejected}
+
+
+def _map_settings(settings: Settings) -> dict[str, Any]:
+    """The settings sections that shape the map (not endpoints, queue or state dir), to compare on resume."""
+    return settings.model_dump(mode="json", include={"keyframes", "odometry", "loops", "detector", "objects",
+                                                     "graph", "camera"})

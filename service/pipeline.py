@@ -1,6 +1,7 @@
 """The per-frame pipeline: temporal checks, odometry front end, keyframes, pose graph, loop closure.
 
-No zenoh, no disk: the service node feeds it decoded frames and serialises its state.
+No zenoh, no disk: the service node feeds it decoded frames; ``state()`` / ``from_state()`` give and take
+its whole state as plain data, which service.persistence writes to disk.
 """
 
 from __future__ import annotations
@@ -10,12 +11,13 @@ import math
 import time
 from collections import Counter
 from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel
 
 from graph.pose_graph import NoiseSettings, PoseGraph
-from perception.frame import Frame
+from perception.frame import CameraModel, Frame
 from perception.frontend import ExternalOdometry, KeyframePolicy, Step, VisualOdometry
 from perception.object_map import ObjectMapper, object_json
 from perception.odometry import FeatureExtractor, OdometryConfig, RelativePoseEstimator
@@ -70,6 +72,7 @@ class Pipeline:
         self.policy = from_settings(KeyframePolicy, settings.keyframes, settings.odometry)
         self.odometry_config = from_settings(OdometryConfig, settings.odometry)
         self.frontend: ExternalOdometry | VisualOdometry | None = None
+        self._camera: CameraModel | None = None
         self.loops: LoopCloser | None = None
         self._extractor: FeatureExtractor | None = None
         self.records: list[FrameRecord] = []
@@ -106,16 +109,21 @@ class Pipeline:
 
     def _start(self, frame: Frame) -> None:
         """Choose the front end from the first frame and set up loop closure for its camera."""
-        if frame.odometry is not None:
+        if frame.odometry is None:
+            log.info("frames carry no odometry: using RGB-D visual odometry")
+        self._setup(frame.camera, external=frame.odometry is not None)
+
+    def _setup(self, camera: CameraModel, external: bool) -> None:
+        self._camera = camera
+        if external:
             self.frontend = ExternalOdometry(self.policy)
         else:
-            self.frontend = VisualOdometry(frame.camera, self.policy, self.odometry_config)
-            log.info("frames carry no odometry: using RGB-D visual odometry")
+            self.frontend = VisualOdometry(camera, self.policy, self.odometry_config)
         lc = self.settings.loops
         if lc.source in ("appearance", "both"):
-            self.loops = LoopCloser(self.graph, RelativePoseEstimator(frame.camera, self.odometry_config),
+            self.loops = LoopCloser(self.graph, RelativePoseEstimator(camera, self.odometry_config),
                                     from_settings(LoopConfig, lc))
-            self._extractor = FeatureExtractor(frame.camera, self.odometry_config)
+            self._extractor = FeatureExtractor(camera, self.odometry_config)
 
     def _check(self, frame: Frame) -> None:
         if frame.timestamp == self.last_timestamp:
@@ -205,3 +213,55 @@ class Pipeline:
 
     def loop_records(self) -> list[dict]:
         return list(self.loops.records) if self.loops is not None else []
+
+    # ------------------------------------------------------------ plain state
+
+    def state(self) -> dict[str, Any]:
+        """Everything needed to continue exactly where this pipeline is, as plain data and arrays.
+
+        The graph as recorded factors and updates, frame records, the front end's keyframe, loop closure's
+        keyframes and records, tracks and objects. Not included: cv2 and gtsam objects and the detector,
+        which ``from_state`` recreates. The result shares arrays with the pipeline: serialise it before the
+        next ``process``.
+        """
+        r = self.records
+        return {
+            "camera": self._camera,
+            "external_odometry": isinstance(self.frontend, ExternalOdometry),
+            "frontend": None if self.frontend is None else self.frontend.state(),
+            "graph": self.graph.state(),
+            "records": {"timestamp": np.array([x.timestamp for x in r]), "seq": np.array([x.seq for x in r], np.int64),
+                        "keyframe": np.array([x.keyframe for x in r], np.int64),
+                        "is_keyframe": np.array([x.is_keyframe for x in r], bool),
+                        "odometry": np.array([x.odometry for x in r]).reshape(-1, 4, 4),
+                        "from_keyframe": np.array([x.from_keyframe for x in r]).reshape(-1, 4, 4)},
+            "kf_odometry": np.array(self._kf_odometry).reshape(-1, 4, 4),
+            "tracking_lost": self.tracking_lost,
+            "keyframe_detections": self.keyframe_detections,
+            "detections_by_class": dict(self.detections_by_class),
+            "objects": None if self.objects is None else self.objects.state(),
+            "object_map_version": self.object_map_version,
+            "loops": None if self.loops is None else self.loops.state(),
+        }
+
+    @classmethod
+    def from_state(cls, settings: Settings, state: dict[str, Any]) -> Pipeline:
+        """A pipeline that continues from ``state`` (of ``state()``) exactly as the saved one would have."""
+        p = cls(settings)
+        p.graph = PoseGraph.from_state(state["graph"])
+        if state["camera"] is not None:
+            p._setup(state["camera"], state["external_odometry"])
+            p.frontend.restore(state["frontend"])
+            if p.loops is not None and state["loops"] is not None:
+                p.loops.restore(state["loops"])
+        r = state["records"]
+        p.records = [FrameRecord(float(t), int(s), int(k), bool(kf), odo, off) for t, s, k, kf, odo, off in zip(
+            r["timestamp"], r["seq"], r["keyframe"], r["is_keyframe"], r["odometry"], r["from_keyframe"])]
+        p._kf_odometry = list(state["kf_odometry"])
+        p.tracking_lost = state["tracking_lost"]
+        p.keyframe_detections = state["keyframe_detections"]
+        p.detections_by_class = Counter(state["detections_by_class"])
+        if p.objects is not None and state["objects"] is not None:
+            p.objects.restore(state["objects"])
+        p.object_map_version = state["object_map_version"]
+        return p

@@ -27,6 +27,7 @@ def run_dataset(spec: str | Dataset, out: Path, settings: Settings, max_frames: 
     room in the ingest queue instead of letting frames drop.
     """
     dataset = open_dataset(spec, camera_overrides) if isinstance(spec, str) else spec
+    settings = settings.model_copy(update={"state_dir": None})  # a run starts a new map and keeps no snapshots
     session = open_session(settings.zenoh, "server", embedded=True)
     node = ServiceNode(settings, session)
     try:
@@ -72,12 +73,20 @@ def _summary(name: str, frames: int, elapsed: float, status: dict[str, Any]) -> 
 
 
 def serve(settings: Settings, stop: threading.Event | None = None) -> None:
-    """Run the service until SIGINT / SIGTERM (or ``stop``); writes outputs to the state dir on shutdown."""
+    """Run the service until SIGINT / SIGTERM (or ``stop``).
+
+    With a state dir: resume from its newest good snapshot, write snapshots while running, and on
+    shutdown a last snapshot and the outputs (SPEC section 4).
+    """
     stop = stop or threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     session = open_session(settings.zenoh, "server")
-    node = ServiceNode(settings, session)
+    try:
+        node = ServiceNode(settings, session)
+    except BaseException:
+        session.close()
+        raise
     node.start()
     log.info("objslam serve: robot %s on %s, listening %s", settings.robot, node.prefix, settings.zenoh.listen)
     try:

@@ -53,6 +53,17 @@ class ServiceStats:
         with self._lock:
             self.errors[kind] += 1
 
+    def counters(self) -> dict:
+        """The frame counters as plain data (kept in snapshots; latencies are not)."""
+        with self._lock:
+            return {"received": self.received, "processed": self.processed, "rejected": dict(self.rejected),
+                    "errors": dict(self.errors)}
+
+    def restore_counters(self, counters: dict) -> None:
+        with self._lock:
+            self.received, self.processed = counters["received"], counters["processed"]
+            self.rejected, self.errors = Counter(counters["rejected"]), Counter(counters["errors"])
+
     def time(self, stage: str, seconds: float) -> None:
         with self._lock:
             self.stages.setdefault(stage, LatencyWindow()).add(seconds)

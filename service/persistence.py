@@ -1,0 +1,300 @@
+"""Snapshots of the service state in the state directory: atomic, checksummed, the previous ones kept.
+
+A snapshot is ``<state_dir>/snapshots/snapshot-<n>.bin`` (n increasing): a 48-byte header (magic
+``OBJSLAM1``, payload length as uint64 little-endian, SHA-256 of the payload) and the payload, a pickle
+(protocol 5, arrays out of band: see ``encode``) of plain data: numbers, strings, numpy arrays and
+objslam's own dataclasses. It is read back with an unpickler that admits nothing else, so a snapshot
+cannot run code.
+
+Writing goes to a temporary file in the same directory, fsync, ``os.replace``, fsync of the directory;
+then all but the newest ``keep`` snapshots are deleted. A crash at any point leaves the previous
+snapshots intact. Loading takes the newest snapshot whose length and checksum verify and reports every
+newer one it skipped, and why.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import io
+import logging
+import os
+import pickle
+import re
+import struct
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from service.config import ConfigError
+
+log = logging.getLogger(__name__)
+
+MAGIC = b"OBJSLAM1"
+HEADER = struct.Struct("<8sQ32s")
+TABLE = struct.Struct("<QQ")
+FORMAT = 1
+_NAME = re.compile(r"^snapshot-(\d{8,})\.bin$")
+_OWN_PACKAGES = ("perception.", "graph.", "service.")
+_ALLOWED = {("builtins", n) for n in ("set", "frozenset", "complex", "slice", "bytearray")} | {
+    ("collections", "Counter"), ("collections", "OrderedDict"), ("numpy", "dtype"), ("numpy", "ndarray")} | {
+    (m, n) for m in ("numpy.core.multiarray", "numpy._core.multiarray") for n in ("_reconstruct", "scalar")} | {
+    (m, "_frombuffer") for m in ("numpy.core.numeric", "numpy._core.numeric")}
+
+
+class SnapshotError(Exception):
+    """A snapshot file is truncated, corrupt, of another format, or holds a type it must not."""
+
+
+def encode(state: dict[str, Any]) -> list[memoryview]:
+    """The payload of a snapshot of ``state`` (plain data only), as pieces to write back to back.
+
+    Pickle protocol 5 with out-of-band buffers: a table (stream length, buffer count, buffer lengths), the
+    pickle stream, then each array's memory as it is, so arrays are written without being copied. The
+    pieces share memory with ``state``: write them before it changes.
+    """
+    buffers: list[pickle.PickleBuffer] = []
+    stream = pickle.dumps({"format": FORMAT, "state": state}, protocol=5, buffer_callback=buffers.append)
+    raws = [b.raw() for b in buffers]
+    table = TABLE.pack(len(stream), len(raws)) + struct.pack(f"<{len(raws)}Q", *(r.nbytes for r in raws))
+    return [memoryview(table), memoryview(stream), *raws]
+
+
+class _PlainUnpickler(pickle.Unpickler):
+    """Admits numpy arrays, a few builtins and the dataclasses of objslam's packages; nothing callable else."""
+
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) in _ALLOWED or module == "numpy.dtypes":
+            return super().find_class(module, name)
+        if module.startswith(_OWN_PACKAGES):
+            cls = super().find_class(module, name)
+            if isinstance(cls, type) and dataclasses.is_dataclass(cls):
+                return cls
+        raise SnapshotError(f"snapshot refers to {module}.{name}, which is not plain data")
+
+
+def decode(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
+    """The state of a snapshot payload; raises SnapshotError when it cannot be read back.
+
+    Arrays are views of ``payload`` (writable when it is a bytearray), not copies.
+    """
+    view = memoryview(payload)
+    try:
+        n_stream, n_buffers = TABLE.unpack_from(view)
+        if TABLE.size + 8 * n_buffers > len(view):
+            raise SnapshotError("buffer table longer than the payload")
+        sizes = struct.unpack_from(f"<{n_buffers}Q", view, TABLE.size)
+    except struct.error as exc:
+        raise SnapshotError(f"unreadable buffer table: {exc}") from exc
+    offset = TABLE.size + 8 * n_buffers + n_stream
+    stream = view[offset - n_stream:offset]
+    buffers = []
+    for size in sizes:
+        buffers.append(view[offset:offset + size])
+        offset += size
+    if offset != len(view):
+        raise SnapshotError("payload length does not match its buffer table")
+    try:
+        data = _PlainUnpickler(io.BytesIO(stream), buffers=buffers).load()
+    except SnapshotError:
+        raise
+    except Exception as exc:  # a corrupt pickle can raise almost anything
+        raise SnapshotError(f"unreadable payload: {exc!r}") from exc
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise SnapshotError(f"unknown snapshot format {data.get('format') if isinstance(data, dict) else '?'}")
+    return data["state"]
+
+
+def header(pieces: list[memoryview]) -> bytes:
+    """A snapshot file's header: magic, payload length, SHA-256 of the payload."""
+    digest, size = hashlib.sha256(), 0
+    for piece in pieces:
+        digest.update(piece)
+        size += piece.nbytes
+    return HEADER.pack(MAGIC, size, digest.digest())
+
+
+def seal(pieces: list[memoryview]) -> bytes:
+    """The bytes of a snapshot file: header + payload."""
+    return header(pieces) + b"".join(pieces)
+
+
+def unseal(data: bytes | bytearray) -> memoryview:
+    """The payload of a snapshot file's bytes, after checking magic, length and checksum."""
+    if len(data) < HEADER.size:
+        raise SnapshotError(f"truncated: {len(data)} bytes, shorter than the header")
+    magic, length, digest = HEADER.unpack_from(data)
+    if magic != MAGIC:
+        raise SnapshotError("not a snapshot (bad magic)")
+    payload = memoryview(data)[HEADER.size:]
+    if len(payload) != length:
+        raise SnapshotError(f"truncated: {len(payload)} of {length} payload bytes")
+    if hashlib.sha256(payload).digest() != digest:
+        raise SnapshotError("checksum mismatch")
+    return payload
+
+
+@dataclass(frozen=True)
+class Written:
+    """One snapshot written: its file, size in bytes, and seconds taken (checksum, write, fsync, rename)."""
+
+    path: Path
+    size: int
+    write_s: float
+
+
+class SnapshotStore:
+    """Numbered snapshot files in one directory; the newest ``keep`` are kept."""
+
+    def __init__(self, directory: Path, keep: int = 3):
+        if keep < 2:
+            raise ValueError("keep at least two snapshots, so a bad newest one has a fallback")
+        self.directory = Path(directory)
+        self.keep = keep
+        self.directory.mkdir(parents=True, exist_ok=True)
+        for stale in self.directory.glob(".snapshot-*.tmp"):  # a write cut short by a crash
+            log.info("removing unfinished snapshot %s", stale.name)
+            stale.unlink(missing_ok=True)
+
+    def snapshots(self) -> list[Path]:
+        """Snapshot files, oldest first."""
+        found = [(int(m.group(1)), p) for p in self.directory.iterdir() if (m := _NAME.match(p.name))]
+        return [p for _, p in sorted(found)]
+
+    def write(self, payload: list[memoryview]) -> Written:
+        """Write ``payload`` (``encode``'s pieces) as the next snapshot, atomically and durably; prune the oldest."""
+        t0 = time.perf_counter()
+        existing = self.snapshots()
+        number = int(_NAME.match(existing[-1].name).group(1)) + 1 if existing else 1
+        path = self.directory / f"snapshot-{number:08d}.bin"
+        fd, tmp = tempfile.mkstemp(dir=self.directory, prefix=".snapshot-", suffix=".tmp")
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(header(payload))
+                for piece in payload:
+                    fh.write(piece)
+                fh.flush()
+                os.fsync(fh.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        _fsync_dir(self.directory)
+        for old in (existing + [path])[:-self.keep]:
+            old.unlink(missing_ok=True)
+        return Written(path, HEADER.size + sum(p.nbytes for p in payload), time.perf_counter() - t0)
+
+    def candidates(self, skipped: list[tuple[str, str]]) -> Iterator[tuple[Path, dict[str, Any]]]:
+        """Decoded snapshots, newest first; each one that does not verify is logged and added to ``skipped``."""
+        for path in reversed(self.snapshots()):
+            try:
+                state = decode(unseal(_read(path)))
+            except (SnapshotError, OSError) as exc:
+                log.error("snapshot %s is unusable (%s); trying the previous one", path.name, exc)
+                skipped.append((path.name, str(exc)))
+                continue
+            yield path, state
+
+
+class Persistence:
+    """A service's snapshots: resume from the newest good one, write one every ``every_keyframes`` keyframes.
+
+    A snapshot holds ``{"robot", "created", "keyframes", "frames_processed", "state"}``; ``state`` is what
+    the service gives (its pipeline's plain state and counters). ``status()`` reports what was written and
+    what the service resumed from.
+    """
+
+    def __init__(self, directory: Path, robot: str, every_keyframes: int = 10, keep: int = 3):
+        self.directory = Path(directory)
+        self.store = SnapshotStore(self.directory / "snapshots", keep)
+        self.robot = robot
+        self.every_keyframes = every_keyframes
+        self.written = self.failed = 0
+        self.last: dict[str, Any] | None = None
+        self.resumed_from: dict[str, Any] | None = None
+        self.skipped: list[tuple[str, str]] = []
+        self._saved = (0, 0)  # (keyframes, frames processed) of the newest snapshot
+
+    def resume(self, restore: Callable[[dict[str, Any]], None]) -> bool:
+        """Call ``restore`` with the newest good snapshot's state; one it fails on counts as bad too.
+
+        Raises ConfigError when the directory holds another robot's map.
+        """
+        for path, snap in self.store.candidates(self.skipped):
+            if snap.get("robot", self.robot) != self.robot:
+                raise ConfigError(f"state dir {self.directory} holds the map of robot {snap['robot']!r}, "
+                                  f"not {self.robot!r}: give each robot its own --state-dir")
+            try:
+                restore(snap["state"])
+            except Exception as exc:  # e.g. a snapshot of an incompatible version: fall back, never crash
+                log.exception("snapshot %s cannot be restored; trying the previous one", path.name)
+                self.skipped.append((path.name, f"cannot be restored: {exc!r}"))
+                continue
+            self._saved = (snap["keyframes"], snap["frames_processed"])
+            self.resumed_from = {"file": path.name, "keyframes": snap["keyframes"],
+                                 "frames_processed": snap["frames_processed"], "created": snap["created"]}
+            log.info("resumed from %s: %d keyframes, %d frames processed", path.name, *self._saved)
+            return True
+        if self.skipped:
+            log.error("no usable snapshot in %s: starting a new map", self.store.directory)
+        return False
+
+    def due(self, keyframes: int) -> bool:
+        """True once ``every_keyframes`` keyframes were added since the newest snapshot."""
+        return keyframes - self._saved[0] >= self.every_keyframes
+
+    def changed(self, keyframes: int, frames: int) -> bool:
+        """True when there is work that the newest snapshot does not hold."""
+        return (keyframes, frames) != self._saved
+
+    def capture(self, keyframes: int, frames: int, state: dict[str, Any]) -> list[memoryview]:
+        """The payload of a snapshot of ``state``; it shares memory with ``state``: save it before that changes."""
+        return encode({"robot": self.robot, "created": time.time(), "keyframes": keyframes,
+                       "frames_processed": frames, "state": state})
+
+    def save(self, payload: list[memoryview], keyframes: int, frames: int, capture_s: float = 0.0) -> Written | None:
+        """Write a captured payload; a failed write is logged and counted (the service keeps mapping)."""
+        try:
+            written = self.store.write(payload)
+        except OSError as exc:
+            self.failed += 1
+            log.error("could not write a snapshot in %s: %s", self.store.directory, exc)
+            return None
+        self.written += 1
+        self._saved = (keyframes, frames)
+        self.last = {"file": written.path.name, "keyframes": keyframes, "frames_processed": frames,
+                     "bytes": written.size, "capture_ms": round(capture_s * 1e3, 3),
+                     "write_ms": round(written.write_s * 1e3, 3)}
+        log.info("snapshot %s: %d keyframes, %.1f MB, capture %.0f ms, write %.0f ms", written.path.name, keyframes,
+                 written.size / 1e6, capture_s * 1e3, written.write_s * 1e3)
+        return written
+
+    def status(self) -> dict[str, Any]:
+        """The ``persistence`` object of the status reply (docs/protocol.md)."""
+        return {"state_dir": str(self.directory), "every_keyframes": self.every_keyframes,
+                "snapshots_written": self.written, "failed_writes": self.failed, "last_snapshot": self.last,
+                "resumed_from": self.resumed_from,
+                "skipped_snapshots": [{"file": f, "reason": r} for f, r in self.skipped]}
+
+
+def _read(path: Path) -> bytearray:
+    """A file's bytes, writable (arrays decoded from a snapshot are views of them)."""
+    data = bytearray(path.stat().st_size)
+    with path.open("rb") as fh:
+        n = fh.readinto(data)
+    return data[:n] if n < len(data) else data
+
+
+def _fsync_dir(directory: Path) -> None:
+    """Make a rename in ``directory`` durable (no-op where directories cannot be opened, e.g. Windows)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
