@@ -27,6 +27,9 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
         out: Annotated[Path, typer.Option("--out", help="policy file FILE.onnx (FILE.json, .pt, .png beside it)")],
         grid: Annotated[str, typer.Option("--map", help="shipped configuration (config1..config6) or map file")]
         = "config1",
+        from_map: Annotated[Path | None, typer.Option(
+            "--from-map", help="a run output or state directory: train for its grid world (grid.json)")] = None,
+        cell_m: Annotated[float, typer.Option("--cell", help="--from-map: grid cell size in metres")] = 0.25,
         steps: Annotated[int, typer.Option("--steps", help="environment steps over all actors")] = 300_000,
         batch: Annotated[BatchMode, typer.Option("--batch", help="entropy-based (eq. 3.20) or fixed")]
         = BatchMode.entropy,
@@ -34,6 +37,8 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
         b1: Annotated[int, typer.Option("--b1", help="entropy batch: shortest trajectory per actor")] = 64,
         b2: Annotated[int, typer.Option("--b2", help="entropy batch: longest trajectory per actor")] = 256,
         envs: Annotated[int, typer.Option("--envs", help="parallel actors")] = 8,
+        episode_steps: Annotated[int, typer.Option("--episode-steps", help="training episodes truncated here")]
+        = 512,
         seed: Annotated[int, typer.Option("--seed")] = 0,
         threads: Annotated[int, typer.Option("--threads", help="torch threads")] = 1,
         resume: Annotated[bool, typer.Option("--resume", help="continue from FILE.pt")] = False,
@@ -46,7 +51,7 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
             raise user_error(f"training needs the train extra (pip install -e '.[train]'): {exc}") from exc
         from tqdm import tqdm
 
-        from rl.gridmap import MapError
+        from rl.gridmap import GridMap, MapError
         from service.lcplot import plot_reward_curves
 
         if out.suffix != ".onnx":
@@ -61,10 +66,11 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
                     raise user_error(f"no checkpoint to resume: {checkpoint}")
                 trainer = Trainer.resume(checkpoint, total_steps=steps)
             else:
-                cfg = TrainConfig(map=grid, total_steps=steps, n_envs=envs, batch=batch.value, n_steps=n_steps,
-                                  b1=b1, b2=b2, seed=seed, threads=threads,
+                grid_map = _map_of_dir(from_map, cell_m) if from_map is not None else GridMap.load(grid)
+                cfg = TrainConfig(map=grid_map.name, total_steps=steps, n_envs=envs, batch=batch.value, n_steps=n_steps,
+                                  b1=b1, b2=b2, seed=seed, threads=threads, max_episode_steps=episode_steps,
                                   minibatches=min(4, envs) if envs % min(4, envs) == 0 else 1)
-                trainer = Trainer(cfg)
+                trainer = Trainer(cfg, grid_map)
         except (MapError, ValueError) as exc:
             raise user_error(str(exc)) from exc
         bar = tqdm(total=steps, initial=trainer.global_step, unit="step", desc=f"train-lc {trainer.grid.name}")
@@ -137,6 +143,18 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
                    markdown_table(header, rows),
                    f"Mean over configurations: precision {100 * mean_p:.1f} %, recall {100 * mean_r:.1f} % "
                    f"(target >= 95 % / >= 80 %; dissertation 80 % / 67 %).", path=write)
+
+
+def _map_of_dir(path: Path, cell_m: float):
+    """The grid world of a run output or state directory: its grid.json, else built from its map."""
+    from rl.gridmap import GridMap
+    from service.lc_grid import GRID_FILE, load_map_dir, write_grid
+
+    if (path / GRID_FILE).is_file() and cell_m == 0.25:
+        return GridMap.load(path / GRID_FILE)
+    grid = load_map_dir(path, cell_m, 5.0)
+    write_grid(path, grid)
+    return grid
 
 
 def _pr(res) -> str:
