@@ -89,7 +89,13 @@ class Renderer:
         """The (size, size, 3) uint8 image of what the agent sees, the agent's cell drawn in red."""
         image = np.where(self.mask(cell, heading)[..., None], self.colours, np.uint8(0))
         image[cell] = AGENT
-        return image[self._rows_px][:, self._cols_px]
+        image = image[self._rows_px][:, self._cols_px]
+        if len(self._rows_px) < 3 * self.grid.shape[0] or len(self._cols_px) < 3 * self.grid.shape[1]:
+            # cells under 3 pixels: the agent is drawn as a 3 x 3 block centred on its cell, to stay visible
+            r = int(np.searchsorted(self._rows_px, cell[0]))
+            c = int(np.searchsorted(self._cols_px, cell[1]))
+            image[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2] = AGENT
+        return image
 
     def full_view(self, cell: tuple[int, int], heading: int, px: int | None = None) -> np.ndarray:
         """A human view of the whole grid: loop-closure locations numbered, the cone lit, the agent's heading."""
