@@ -17,8 +17,9 @@ PPO ratio correct), so no experience is thrown away. ``batch="fixed"`` uses n* =
 Balanced policy loss. Even the best prefix holds few due loop closures (2-14 % of steps), and the
 "no loop closure" steps then drive the actor to never close a loop before it has learned to tell the
 places apart (the collapse of Fig. 3.10a). With ``balance`` the clipped surrogate of each step is
-weighted so that due and not-due steps carry equal total weight: the batch is re-weighted to maximum
-correct-action entropy, the limit eq. 3.20 moves towards. Weighting states does not change which
+weighted so that three kinds of step carry equal total weight: a loop closure is due; the agent stands
+on a loop-closure location where none is due (a first visit: the case only memory can tell); any other
+step. The batch is re-weighted towards maximum correct-action entropy, the limit eq. 3.20 moves towards. Weighting states does not change which
 action is best in a state the policy can tell apart, only how fast each is learned; where its memory
 cannot tell a due visit from a first one it would favour loop closures, so the weights are annealed
 to 1 (plain PPO) by ``balance`` x total_steps.
@@ -106,6 +107,7 @@ class Buffer:
     rewards: np.ndarray
     dones: np.ndarray
     targets: np.ndarray
+    at_loop: np.ndarray  # the agent stood on a loop-closure location
     states: np.ndarray  # (T, 4, n_envs, hidden): actor h, c, critic h, c
     filled: int = 0
 
@@ -113,12 +115,12 @@ class Buffer:
     def empty(cls, T: int, n: int, hidden: int) -> Buffer:
         return cls(np.zeros((T, n, 84, 84, 3), np.uint8), np.zeros((T, n), bool), np.zeros((T, n), np.int64),
                    np.zeros((T, n), np.float32), np.zeros((T, n), np.float32), np.zeros((T, n), bool),
-                   np.zeros((T, n), np.int64), np.zeros((T, 4, n, hidden), np.float32))
+                   np.zeros((T, n), np.int64), np.zeros((T, n), bool), np.zeros((T, 4, n, hidden), np.float32))
 
     def drop_front(self, n: int) -> None:
         """Keep steps [n, filled) as the start of the next batch."""
         keep = self.filled - n
-        for name in ("obs", "starts", "actions", "logprobs", "rewards", "dones", "targets", "states"):
+        for name in ("obs", "starts", "actions", "logprobs", "rewards", "dones", "targets", "at_loop", "states"):
             arr = getattr(self, name)
             arr[:keep] = arr[n:self.filled].copy()
         self.filled = keep
@@ -131,13 +133,14 @@ class TrainResult:
     wall_s: float = 0.0
 
 
-def balance_weights(targets: np.ndarray) -> np.ndarray:
-    """Per-step weights giving the steps where a loop closure is due and the others equal total weight (mean 1)."""
-    due = targets > 0
-    n, k = due.size, int(due.sum())
-    if k == 0 or k == n:
-        return np.ones(targets.shape, np.float32)
-    return np.where(due, n / (2 * k), n / (2 * (n - k))).astype(np.float32)
+def balance_weights(targets: np.ndarray, at_loop: np.ndarray) -> np.ndarray:
+    """Per-step weights (mean 1) giving each kind of step equal total weight: a loop closure is due; the agent
+    is on a loop-closure location where none is due (a first visit: what memory must learn); elsewhere."""
+    kind = np.where(targets > 0, 2, np.where(at_loop, 1, 0))
+    counts = np.bincount(kind.ravel(), minlength=3)
+    present = counts > 0
+    per_kind = np.where(present, kind.size / (present.sum() * np.maximum(counts, 1)), 0.0)
+    return per_kind[kind].astype(np.float32)
 
 
 def distinct_frames(obs: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -216,7 +219,9 @@ class Trainer:
             action = dist.sample()
             b.actions[t], b.logprobs[t] = action.numpy(), dist.log_prob(action).numpy()
             obs, reward, term, trunc, info = self.envs.step(action.numpy())
-            b.rewards[t], b.dones[t], b.targets[t] = reward, term | trunc, step_info(info, "correct_action", term | trunc)
+            done = term | trunc
+            b.rewards[t], b.dones[t], b.targets[t] = reward, done, step_info(info, "correct_action", done)
+            b.at_loop[t] = step_info(info, "loop", done) >= 0
             self.state = [s.numpy() for s in (ah, ac, ch, cc)]
             self.next_obs, self.next_start = obs, term | trunc
             self._returns += reward
@@ -280,7 +285,7 @@ class Trainer:
         actions = torch.from_numpy(b.actions[:T])
         old_logp = torch.from_numpy(b.logprobs[:T])
         adv_t, ret_t = torch.from_numpy(advantages), torch.from_numpy(returns)
-        weight = torch.from_numpy(balance_weights(b.targets[:T]) ** self.balance_power())
+        weight = torch.from_numpy(balance_weights(b.targets[:T], b.at_loop[:T]) ** self.balance_power())
         groups = np.array_split(np.arange(cfg.n_envs), cfg.minibatches)
         rng = np.random.default_rng(cfg.seed + self.global_step)
         clipped = []

@@ -15,7 +15,7 @@ torch = pytest.importorskip("torch", reason="the train extra (torch) is not inst
 from rl.env import GridRules, LoopClosureGrid  # noqa: E402
 from rl.export import export_trainer, torch_probabilities  # noqa: E402
 from rl.policy import OnnxPolicy  # noqa: E402
-from rl.ppo import TrainConfig, Trainer, batch_length  # noqa: E402
+from rl.ppo import TrainConfig, Trainer, balance_weights, batch_length  # noqa: E402
 
 
 def _objslam(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
@@ -31,6 +31,18 @@ def test_batch_length_picks_the_prefix_with_most_action_entropy():
     targets[30:34, :] = 2  # a burst later outweighs it
     assert batch_length(targets, 3, 4, 40) == 34
     assert batch_length(np.zeros((40, 2), np.int64), 3, 8, 40) == 8  # no loop closures: ties -> shortest
+
+
+def test_balance_weights_give_each_kind_of_step_equal_total_weight():
+    targets = np.zeros((10, 2), np.int64)
+    at_loop = np.zeros((10, 2), bool)
+    targets[0, 0] = 1  # one due loop closure
+    at_loop[0, 0] = at_loop[1, 1] = at_loop[2, 1] = True  # ... and two first visits
+    w = balance_weights(targets, at_loop)
+    assert np.isclose(w.mean(), 1.0)
+    due, first, other = w[0, 0], w[1, 1], w[3, 0]
+    assert np.isclose(due, 2 * first) and np.isclose(due * 1, other * 17)  # equal totals: 1, 2 and 17 steps
+    assert np.allclose(balance_weights(np.zeros((4, 2), np.int64), np.zeros((4, 2), bool)), 1.0)
 
 
 def test_train_lc_smoke_run_exports_a_policy_that_eval_lc_reads(tmp_path):
