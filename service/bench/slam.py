@@ -53,10 +53,13 @@ def windows_found(loops: list[dict], windows: list) -> str:
     return f"{found} / {len(windows)}"
 
 
-def run_one(spec: str, out: Path) -> dict[str, Any]:
-    """One end-to-end run without provided odometry; returns the figures of both tables."""
+def run_one(spec: str, out: Path, loops: dict[str, Any] | None = None) -> dict[str, Any]:
+    """One end-to-end run without provided odometry; returns the figures of both tables.
+
+    ``loops`` overrides loop-closure settings (default: the appearance source).
+    """
     dataset = WithoutOdometry(open_dataset(spec))
-    settings = load_settings(None, {"loops": {"source": "appearance"}})
+    settings = load_settings(None, {"loops": loops or {"source": "appearance"}})
     summary = run_dataset(dataset, out, settings, progress=False)
     loops = json.loads((out / "loops.json").read_text())
     judged = [dict(r, true=is_true_loop(dataset, r["match_frame"], r["query_frame"]),
@@ -81,6 +84,7 @@ def run_one(spec: str, out: Path) -> dict[str, Any]:
                          f"{np.median([g[1] for g in accepted_geo]):.2f} deg") if accepted_geo else "n/a",
         "windows": windows_found(judged, windows) if windows else "n/a",
         "sources": sorted({r["source"] for r in judged}),
+        "policy_p50_ms": lat["policy"]["p50_ms"] if lat.get("policy", {}).get("n") else None,
     }
 
 
