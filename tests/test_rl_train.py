@@ -43,6 +43,8 @@ def test_balance_weights_give_each_kind_of_step_equal_total_weight():
     due, first, other = w[0, 0], w[1, 1], w[3, 0]
     assert np.isclose(due, 2 * first) and np.isclose(due * 1, other * 17)  # equal totals: 1, 2 and 17 steps
     assert np.allclose(balance_weights(np.zeros((4, 2), np.int64), np.zeros((4, 2), bool)), 1.0)
+    two = balance_weights(targets)  # due vs the rest
+    assert np.isclose(two[0, 0] * 1, two[3, 0] * 19)
 
 
 def test_train_lc_smoke_run_exports_a_policy_that_eval_lc_reads(tmp_path):
