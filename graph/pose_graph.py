@@ -1,9 +1,14 @@
-"""iSAM2 pose graph over keyframes: a prior on the first pose and odometry between-factors (SPEC 6.8).
+"""iSAM2 graph over keyframe poses and Point3 landmarks (SPEC 6.8).
 
-Every factor is kept as plain data (``FactorRecord``) and every iSAM2 update is logged, so ``state()`` is
-picklable and ``from_state()`` rebuilds the identical solver by replaying the updates into a fresh iSAM2
-(gtsam objects themselves do not pickle; iSAM2's estimate depends on its update history, not only on
-the factors).
+Keyframes: a prior on the first pose, odometry and loop-closure between-factors. Landmarks: camera-frame
+position measurements, inserted into iSAM2 only once observable (a prior, or observations from two
+keyframes), so an underdetermined landmark never reaches the solver.
+
+Every factor is kept as plain data (``graph.factors.FactorRecord``) and every successful iSAM2 update is
+logged, so ``state()`` is picklable and ``from_state()`` rebuilds the identical solver by replaying the
+updates into a fresh iSAM2 (gtsam objects do not pickle; iSAM2's estimate depends on its update history).
+A failed update (iSAM2 throws, e.g. an indeterminant system) may leave its variables inside iSAM2, so the
+solver is rebuilt from the log without it: the graph is then exactly as before the failed update.
 """
 
 from __future__ import annotations
@@ -14,18 +19,26 @@ from typing import Any
 
 import gtsam
 import numpy as np
-from gtsam.symbol_shorthand import X
+from gtsam.symbol_shorthand import L, X
+
+from graph.errors import SolverError
+from graph.factors import FactorRecord, from_columns, pose_noise, to_columns
+from graph.landmarks import Landmarks
+
+__all__ = ["FactorRecord", "NoiseSettings", "PoseGraph", "SolverError", "pose_noise"]
 
 log = logging.getLogger(__name__)
 
-
-class SolverError(Exception):
-    """iSAM2 rejected an update (e.g. an indeterminant system); the caller counts it and carries on."""
+Update = tuple[int, int, tuple[int, ...], tuple[int, ...]]  # factors, poses, removed indices, landmark ids
 
 
 @dataclass(frozen=True)
 class NoiseSettings:
-    """Standard deviations of the pose prior and of odometry between-factors."""
+    """Standard deviations of the pose prior and of odometry between-factors; iSAM2 parameters.
+
+    ``partial_relinearization_check``: look for variables to relinearize only in the cliques an update
+    touches, not in the whole tree (``objslam bench isam2``: p95 update time at 10,000 poses 4x lower).
+    """
 
     odometry_sigma_m: float = 0.02
     odometry_sigma_deg: float = 1.0
@@ -33,54 +46,38 @@ class NoiseSettings:
     prior_sigma_deg: float = 0.01
     relinearize_threshold: float = 0.01
     relinearize_skip: int = 1
+    partial_relinearization_check: bool = True
 
 
-def pose_noise(sigma_m: float, sigma_deg: float) -> gtsam.noiseModel.Diagonal:
-    """Diagonal Pose3 noise; gtsam orders the tangent space as (rotation, translation)."""
-    r = np.deg2rad(sigma_deg)
-    return gtsam.noiseModel.Diagonal.Sigmas(np.array([r, r, r, sigma_m, sigma_m, sigma_m]))
-
-
-@dataclass(frozen=True)
-class FactorRecord:
-    """One factor as plain data: a prior on keyframe ``a`` (``b`` = -1) or a between-factor a -> b.
-
-    ``measurement`` is the prior pose or ``T_a_b`` (4x4); ``huber_k`` set means a Huber robust kernel.
-    """
-
-    a: int
-    b: int
-    measurement: np.ndarray
-    sigma_m: float
-    sigma_deg: float
-    huber_k: float | None = None
-
-    def to_gtsam(self) -> gtsam.NonlinearFactor:
-        noise = pose_noise(self.sigma_m, self.sigma_deg)
-        if self.huber_k is not None:
-            noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(self.huber_k), noise)
-        if self.b < 0:
-            return gtsam.PriorFactorPose3(X(self.a), gtsam.Pose3(self.measurement), noise)
-        return gtsam.BetweenFactorPose3(X(self.a), X(self.b), gtsam.Pose3(self.measurement), noise)
-
-
-class PoseGraph:
-    """Keyframe poses in an incremental iSAM2 graph. Keys are ``X(i)`` for keyframe i = 0, 1, ..."""
+class PoseGraph(Landmarks):
+    """Keyframe poses ``X(i)`` (i = 0, 1, ...) and landmarks ``L(j)`` in an incremental iSAM2 graph."""
 
     def __init__(self, noise: NoiseSettings = NoiseSettings()):
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(noise.relinearize_threshold)
-        params.relinearizeSkip = noise.relinearize_skip
-        self.isam = gtsam.ISAM2(params)
         self.noise = noise
+        self.factorization = "CHOLESKY"  # QR after Cholesky found the system indeterminant (``_update``)
+        self.isam = self._new_isam()
         self.factors: list[FactorRecord] = []  # index = iSAM2 factor index
-        self._initial: list[np.ndarray] = []  # initial guesses in the order they were inserted
-        self._log: list[tuple[int, int, tuple[int, ...], bool]] = []  # per update: factors, values, removed, ok
+        self._initial: list[np.ndarray] = []  # keyframe pose guesses in insertion order
+        self._landmark_initial: list[np.ndarray] = []  # landmark position guesses in insertion order
+        self._log: list[Update] = []
+        self._landmarks: dict[int, int] = {}  # landmark id in iSAM2 -> insertion order
+        self._pending: dict[int, list[FactorRecord]] = {}  # declared, not yet observable -> its observations
+        self._removed: set[int] = set()  # factor indices removed from iSAM2
         self._estimate: gtsam.Values | None = None
         self._latest = np.eye(4)
         self.num_keyframes = 0
         self.num_factors = 0
         self.updates = 0
+
+    def _new_isam(self) -> gtsam.ISAM2:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.noise.relinearize_threshold)
+        params.relinearizeSkip = self.noise.relinearize_skip
+        params.enablePartialRelinearizationCheck = self.noise.partial_relinearization_check
+        params.setFactorization(self.factorization)
+        return gtsam.ISAM2(params)
+
+    # ------------------------------------------------------------ keyframes
 
     def add_first(self, pose: np.ndarray) -> int:
         """Anchor keyframe 0 at ``pose`` (camera-to-world) with a tight prior."""
@@ -136,48 +133,104 @@ class PoseGraph:
         self._update([], remove=indices)
         self._converge(10)
 
+    # ------------------------------------------------------------ queries
+
     def pose(self, k: int) -> np.ndarray:
         """Current estimate of keyframe ``k`` (camera-to-world 4x4)."""
         return self.isam.calculateEstimatePose3(X(k)).matrix()
 
     def poses(self) -> np.ndarray:
         """All keyframe estimates, (K, 4, 4), cached until the next update."""
-        if self._estimate is None:
-            self._estimate = self.isam.calculateEstimate()
-        return np.stack([self._estimate.atPose3(X(k)).matrix() for k in range(self.num_keyframes)]) \
-            if self.num_keyframes else np.zeros((0, 4, 4))
+        if not self.num_keyframes:
+            return np.zeros((0, 4, 4))
+        estimate = self._current()
+        return np.stack([estimate.atPose3(X(k)).matrix() for k in range(self.num_keyframes)])
 
     def marginal_covariance(self, k: int) -> np.ndarray:
         """6x6 marginal covariance of keyframe ``k`` (rotation, translation), from iSAM2's Bayes tree."""
         return np.asarray(self.isam.marginalCovariance(X(k)))
 
-    def _update(self, factors: list[FactorRecord], values: list[np.ndarray] = (),
-                remove: list[int] | None = None) -> gtsam.ISAM2Result:
-        """One iSAM2 update: new factors, initial guesses of the next keyframes, factor indices to remove."""
+    def _current(self) -> gtsam.Values:
+        if self._estimate is None:
+            self._estimate = self.isam.calculateEstimate()
+        return self._estimate
+
+    # ------------------------------------------------------------ updates
+
+    def _update(self, factors: list[FactorRecord], poses: list[np.ndarray] = (),
+                landmarks: list[tuple[int, np.ndarray]] = (), remove: list[int] | None = None) -> gtsam.ISAM2Result:
+        """One iSAM2 update: new factors, guesses of the next keyframes and of new landmarks, factors to remove.
+
+        When iSAM2 throws, the solver is rebuilt from the log (without this update) and SolverError raised. An
+        indeterminant system under Cholesky (its information form loses precision as uncertainty grows along a
+        long chain) first switches the solver to QR for good: rebuilt, and the update retried.
+        """
+        try:
+            return self._apply(factors, poses, landmarks, remove or [])
+        except RuntimeError as exc:
+            error = exc
+        if self.factorization == "CHOLESKY" and "ndetermina" in str(error):
+            log.warning("iSAM2 found the system indeterminant with Cholesky; rebuilding with QR factorization "
+                        "(numerically stabler on long chains without loop closures) and retrying")
+            self.factorization = "QR"
+            self._rebuild()
+            try:
+                return self._apply(factors, poses, landmarks, remove or [])
+            except RuntimeError as exc:
+                error = exc
+        log.error("iSAM2 update failed, rebuilding the solver without it: %s", error)
+        self._rebuild()
+        raise SolverError(str(error)) from error
+
+    def _apply(self, factors: list[FactorRecord], poses: list[np.ndarray], landmarks: list[tuple[int, np.ndarray]],
+               remove: list[int]) -> gtsam.ISAM2Result:
+        """The iSAM2 update itself, and on success its bookkeeping (records, log, counters)."""
         graph = gtsam.NonlinearFactorGraph()
         for f in factors:
             graph.add(f.to_gtsam())
         initial = gtsam.Values()
-        for i, pose in enumerate(values):
+        for i, pose in enumerate(poses):
             initial.insert(X(self.num_keyframes + i), gtsam.Pose3(pose))
-        self.factors.extend(factors)  # logged even when iSAM2 throws: it may hold them already
-        self._initial.extend(values)
-        try:
-            if remove:
-                result = self.isam.update(graph, initial, list(remove))
-            else:
-                result = self.isam.update(graph, initial)
-        except RuntimeError as exc:
-            self._log.append((len(factors), len(values), tuple(remove or ()), False))
-            log.error("iSAM2 update failed: %s", exc)
-            raise SolverError(str(exc)) from exc
-        self._log.append((len(factors), len(values), tuple(remove or ()), True))
+        for j, position in landmarks:
+            initial.insertPoint3(L(j), np.asarray(position, float))
+        result = self.isam.update(graph, initial, list(remove)) if remove else self.isam.update(graph, initial)
+        self.factors.extend(factors)
+        self._initial.extend(poses)
+        for j, position in landmarks:
+            self._landmarks[j] = len(self._landmark_initial)
+            self._landmark_initial.append(np.asarray(position, float))
+        self._log.append((len(factors), len(poses), tuple(remove), tuple(j for j, _ in landmarks)))
+        if remove:
+            self._removed.update(remove)
+            self._drop_unconstrained(remove)
         self.updates += 1
-        self.num_factors += len(factors) - len(remove or ())
-        self.num_keyframes += len(values)
+        self.num_factors += len(factors) - len(remove)
+        self.num_keyframes += len(poses)
         self._estimate = None
-        self._latest = self.pose(self.num_keyframes - 1)
+        if self.num_keyframes:
+            self._latest = self.pose(self.num_keyframes - 1)
         return result
+
+    def _rebuild(self) -> None:
+        """A fresh iSAM2 with every logged update replayed: the graph as it was before a failed update."""
+        entries, factors = self._log, self.factors
+        initial, landmark_initial = self._initial, self._landmark_initial
+        self._reset()
+        self._replay(entries, factors, initial, landmark_initial)
+
+    def _reset(self) -> None:
+        self.isam = self._new_isam()
+        self.factors, self._initial, self._landmark_initial, self._log = [], [], [], []
+        self._landmarks, self._removed, self._estimate, self._latest = {}, set(), None, np.eye(4)
+        self.num_keyframes = self.num_factors = self.updates = 0
+
+    def _replay(self, entries: list[Update], factors: list[FactorRecord], initial: list[np.ndarray],
+                landmark_initial: list[np.ndarray]) -> None:
+        nf = nv = nl = 0
+        for n_factors, n_poses, removed, landmark_ids in entries:
+            landmarks = list(zip(landmark_ids, landmark_initial[nl:nl + len(landmark_ids)]))
+            self._apply(factors[nf:nf + n_factors], initial[nv:nv + n_poses], landmarks, list(removed))
+            nf, nv, nl = nf + n_factors, nv + n_poses, nl + len(landmark_ids)
 
     # ------------------------------------------------------------ plain state
 
@@ -185,39 +238,60 @@ class PoseGraph:
         """Plain data (numbers, strings, arrays) from which ``from_state`` rebuilds this graph exactly.
 
         ``factors`` in columns (index = iSAM2 factor index, removed ones included), the initial guesses
-        in insertion order, the update log (failed updates too), and the current estimate (a replay check).
+        of keyframes and landmarks in insertion order, the update log, landmarks still waiting to be
+        observable with their held-back observations, and the current estimate (a replay check).
         """
-        f = self.factors
+        pending = [r for observations in self._pending.values() for r in observations]
         return {
             "noise": asdict(self.noise),
-            "factors": {
-                "a": np.array([r.a for r in f], np.int64), "b": np.array([r.b for r in f], np.int64),
-                "measurement": np.array([r.measurement for r in f]).reshape(-1, 4, 4),
-                "sigma_m": np.array([r.sigma_m for r in f]), "sigma_deg": np.array([r.sigma_deg for r in f]),
-                "huber_k": np.array([np.nan if r.huber_k is None else r.huber_k for r in f])},
+            "factorization": self.factorization,
+            "factors": to_columns(self.factors),
             "initial": np.array(self._initial).reshape(-1, 4, 4),
+            "landmark_initial": np.array(self._landmark_initial, float).reshape(-1, 3),
             "updates": list(self._log),
+            "pending_landmarks": np.array(list(self._pending), np.int64),
+            "pending": to_columns(pending),
             "estimate": self.poses(),
         }
 
     @classmethod
     def from_state(cls, state: dict[str, Any]) -> PoseGraph:
         """Replay the recorded updates into a fresh iSAM2: same factor indices, removals and estimate."""
-        graph = cls(NoiseSettings(**state["noise"]))
-        c = state["factors"]
-        factors = [FactorRecord(int(a), int(b), m, float(sm), float(sd), None if np.isnan(k) else float(k))
-                   for a, b, m, sm, sd, k in zip(c["a"], c["b"], c["measurement"], c["sigma_m"], c["sigma_deg"],
-                                                 c["huber_k"])]
-        initial = list(state["initial"])
-        nf = nv = 0
-        for n_factors, n_values, removed, ok in state["updates"]:
-            try:
-                graph._update(factors[nf:nf + n_factors], initial[nv:nv + n_values], list(removed))
-            except SolverError:
-                if ok:
-                    raise
-            nf, nv = nf + n_factors, nv + n_values
+        # snapshots from before the partial relinearization check was a setting were made without it
+        graph = cls(NoiseSettings(**{"partial_relinearization_check": False, **state["noise"]}))
+        if state.get("factorization", "CHOLESKY") != graph.factorization:
+            graph.factorization = state["factorization"]
+            graph.isam = graph._new_isam()
+        entries, factors, initial = _without_failed(state["updates"], from_columns(state["factors"]),
+                                                    list(state["initial"]))
+        try:
+            graph._replay(entries, factors, initial, list(state.get("landmark_initial", [])))
+        except RuntimeError as exc:
+            raise SolverError(f"replaying the saved graph failed: {exc}") from exc
+        pending = from_columns(state["pending"]) if "pending" in state else []
+        graph._pending = {int(j): [r for r in pending if r.b == j] for j in state.get("pending_landmarks", [])}
         drift = float(np.abs(graph.poses() - state["estimate"]).max(initial=0.0))
         if drift > 1e-9:
             log.warning("replayed pose graph differs from the recorded estimate by %.3g", drift)
         return graph
+
+
+def _without_failed(entries: list, factors: list[FactorRecord],
+                    initial: list[np.ndarray]) -> tuple[list[Update], list[FactorRecord], list[np.ndarray]]:
+    """The update log in the current form. Logs from before landmarks are ``(factors, poses, removed, ok)``
+    and kept failed updates, whose factors and guesses are dropped here (the solver no longer keeps them)."""
+    if not entries or not isinstance(entries[0][3], (bool, np.bool_)):
+        return [tuple(e) for e in entries], factors, initial
+    kept: list[Update] = []
+    kept_factors: list[FactorRecord] = []
+    kept_initial: list[np.ndarray] = []
+    nf = nv = 0
+    for n_factors, n_poses, removed, ok in entries:
+        if ok:
+            kept.append((n_factors, n_poses, tuple(removed), ()))
+            kept_factors += factors[nf:nf + n_factors]
+            kept_initial += initial[nv:nv + n_poses]
+        else:
+            log.warning("dropping a failed iSAM2 update of an old snapshot (%d factors, %d poses)", n_factors, n_poses)
+        nf, nv = nf + n_factors, nv + n_poses
+    return kept, kept_factors, kept_initial

@@ -73,15 +73,13 @@ def dominant_depth_mask(depths: np.ndarray, anchor: float, gap_m: float) -> np.n
     """Mask of the depths in the gap-free segment (sorted depths, no jump > ``gap_m``) around ``anchor``."""
     if len(depths) == 0 or not np.isfinite(anchor):
         return np.zeros(len(depths), bool)
-    order = np.argsort(depths, kind="stable")
-    s = depths[order]
+    s = np.sort(depths)
     breaks = np.flatnonzero(np.diff(s) > gap_m)  # segment j spans (breaks[j-1], breaks[j]]
     seg = np.searchsorted(breaks, min(np.searchsorted(s, anchor), len(s) - 1))
     lo = breaks[seg - 1] + 1 if seg > 0 else 0
     hi = breaks[seg] + 1 if seg < len(breaks) else len(s)
-    mask = np.zeros(len(depths), bool)
-    mask[order[lo:hi]] = True
-    return mask
+    # equal depths never straddle a break, so the segment is exactly the depths within its value range
+    return (depths >= s[lo]) & (depths <= s[hi - 1])
 
 
 def object_pixels(depth_m: np.ndarray, box: Box, config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:

@@ -74,10 +74,16 @@ class Frame:
     detections: list[Detection] | None = None
     index: int = -1
     extra: dict = field(default_factory=dict)
+    _depth_m: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     def depth_m(self) -> np.ndarray:
-        """Depth in metres as float32, NaN where invalid (0 or 65535)."""
-        d = self.depth.astype(np.float32) / np.float32(self.camera.depth_scale)
-        invalid = (self.depth == 0) | (self.depth == 65535)
-        d[invalid] = np.nan
-        return d
+        """Depth in metres as float32, NaN where invalid (0 or 65535).
+
+        Computed once per frame (odometry, loop closure, objects and map points all read it) and read-only.
+        """
+        if self._depth_m is None:
+            d = self.depth.astype(np.float32) / np.float32(self.camera.depth_scale)
+            d[(self.depth == 0) | (self.depth == 65535)] = np.nan
+            d.flags.writeable = False
+            self._depth_m = d
+        return self._depth_m

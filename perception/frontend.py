@@ -33,6 +33,14 @@ class KeyframePolicy:
     icp_max_correction_m: float = 0.03
     icp_max_correction_deg: float = 2.0
     skip_edges: int = 2
+    max_jump_m: float = 1.0
+    max_speed_mps: float = 10.0
+
+    def implausible(self, previous: np.ndarray, pose: np.ndarray, dt: float) -> bool:
+        """External odometry that moved farther than ``max_jump_m`` + ``max_speed_mps`` * dt from the previous
+        frame's: a glitch, not motion (it would drag the whole graph, and a kilometre jump makes iSAM2 fail)."""
+        jump = float(np.linalg.norm(pose[:3, 3] - previous[:3, 3]))
+        return jump > self.max_jump_m + self.max_speed_mps * max(dt, 0.0)
 
 
 @dataclass

@@ -72,6 +72,19 @@ def smooth_depth_mask(depth_m: np.ndarray, max_ratio: float = 0.02, radius: int 
     return (lo > 0) & (hi - lo < max_ratio * d)
 
 
+def smooth_depth_at(depth_m: np.ndarray, rows: np.ndarray, cols: np.ndarray, max_ratio: float = 0.02,
+                    radius: int = 2) -> np.ndarray:
+    """``smooth_depth_mask`` at the given pixels only: O(pixels * (2r+1)^2) instead of a pass over the image."""
+    h, w = depth_m.shape
+    offsets = np.arange(-radius, radius + 1)
+    rr = np.clip(rows[:, None, None] + offsets[None, :, None], 0, h - 1)  # clipping repeats in-window pixels
+    cc = np.clip(cols[:, None, None] + offsets[None, None, :], 0, w - 1)
+    window = np.nan_to_num(depth_m[rr, cc], nan=0.0).astype(np.float32).reshape(len(rows), -1)
+    d = np.nan_to_num(depth_m[rows, cols], nan=0.0).astype(np.float32)
+    hi, lo = window.max(axis=1), window.min(axis=1)
+    return (lo > 0) & (hi - lo < max_ratio * d)
+
+
 def depth_at_color_pixels(pixels: np.ndarray, depth_m: np.ndarray, camera: CameraModel,
                           iterations: int = 3, max_edge_ratio: float | None = None) -> np.ndarray:
     """Colour-camera depth (z, metres; NaN where unknown) at colour pixels (N, 2).
@@ -82,12 +95,15 @@ def depth_at_color_pixels(pixels: np.ndarray, depth_m: np.ndarray, camera: Camer
     registration of the depth image.
     """
     h, w = depth_m.shape
-    if max_edge_ratio is not None:
-        depth_m = np.where(smooth_depth_mask(depth_m, max_edge_ratio), depth_m, np.nan)
     if camera.registered:
         u = np.clip(np.round(pixels[:, 0]).astype(int), 0, w - 1)
         v = np.clip(np.round(pixels[:, 1]).astype(int), 0, h - 1)
-        return depth_m[v, u].astype(float)
+        z = depth_m[v, u].astype(float)
+        if max_edge_ratio is not None:
+            z[~smooth_depth_at(depth_m, v, u, max_edge_ratio)] = np.nan
+        return z
+    if max_edge_ratio is not None:
+        depth_m = np.where(smooth_depth_mask(depth_m, max_edge_ratio), depth_m, np.nan)
     c, d = camera.color, camera.depth
     E = camera.depth_to_color if camera.depth_to_color is not None else np.eye(4)
     E_inv = np.linalg.inv(E)

@@ -59,18 +59,25 @@ def warp_depth(depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, splat:
     x, y, z = x[front], y[front], z[front]
     u = np.float32(K[0, 0]) * x / z + np.float32(K[0, 2])
     v = np.float32(K[1, 1]) * y / z + np.float32(K[1, 2])
+    # z-buffer on the image padded by one pixel on each side: a point whose splat reaches the image is kept
+    # once (not its four splat positions tested one by one), and positions in the padding are cropped.
+    pw = w + 2
     if splat == 2:
-        ui, vi = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
-        ui = np.concatenate([ui, ui + 1, ui, ui + 1])
-        vi = np.concatenate([vi, vi, vi + 1, vi + 1])
-        z = np.tile(z, 4)
+        ui, vi = np.floor(u), np.floor(v)
+        near = (ui >= -1) & (ui < w) & (vi >= -1) & (vi < h)
+        base = (vi[near].astype(np.int64) + 1) * pw + ui[near].astype(np.int64) + 1
+        index = np.concatenate([base, base + 1, base + pw, base + pw + 1])
+        depth = np.tile(z[near], 4)
     else:
-        ui, vi = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
-    inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-    out = np.full(h * w, np.inf, dtype=np.float32)
-    np.minimum.at(out, vi[inside] * w + ui[inside], z[inside])
+        ui, vi = np.rint(u), np.rint(v)
+        inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+        index = (vi[inside].astype(np.int64) + 1) * pw + ui[inside].astype(np.int64) + 1
+        depth = z[inside]
+    out = np.full((h + 2) * pw, np.inf, dtype=np.float32)
+    np.minimum.at(out, index, depth)
+    out = out.reshape(h + 2, pw)[1:h + 1, 1:w + 1]
     out[np.isinf(out)] = np.nan
-    return out.reshape(h, w)
+    return out
 
 
 def warp_box(box: Box, depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, gap_m: float = 0.05,

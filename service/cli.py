@@ -69,11 +69,14 @@ def _camera_overrides(**values: float | None) -> dict[str, float]:
 
 
 def _with_lc(settings: Settings, lc_source: LcSource | None, lc_policy: Path | None) -> Settings:
-    """Apply ``--lc-source``; the RL policy source does not exist yet and is refused with one line."""
+    """Apply ``--lc-source`` and ``--lc-policy``; the policy sources need a policy file."""
     source = lc_source.value if lc_source is not None else settings.loops.source
-    if source in ("policy", "both") or lc_policy is not None:
-        raise UserError("the RL loop-closure policy is not available in this version; use --lc-source "
-                        "appearance or off")
+    if lc_policy is not None:
+        if not lc_policy.is_file() or not lc_policy.with_suffix(".json").is_file():
+            raise UserError(f"--lc-policy {lc_policy}: needs FILE.onnx and FILE.json (from train-lc)")
+        settings.loops.policy = lc_policy
+    if source in ("policy", "both") and settings.loops.policy is None:
+        raise UserError(f"--lc-source {source} needs --lc-policy FILE.onnx (train one with train-lc --from-map)")
     settings.loops.source = source
     return settings
 
@@ -193,6 +196,19 @@ def bench_throughput(frames: Annotated[int, typer.Option("--frames")] = 300,
     run_throughput(console, dataset, frames, write)
 
 
+@bench_app.command("isam2")
+def bench_isam2(poses: Annotated[int, typer.Option("--poses")] = 10_000,
+                landmarks: Annotated[int, typer.Option("--landmarks")] = 300,
+                seed: Annotated[int, typer.Option("--seed")] = 0,
+                write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None) -> None:
+    """iSAM2 update cost on a simulated exploration: odometry, loop closures, landmark observations."""
+    from service.bench.isam2 import run_isam2_bench
+
+    if poses < 20 or landmarks < 1:
+        raise UserError("--poses must be at least 20 and --landmarks at least 1")
+    run_isam2_bench(console, poses, landmarks, seed, write)
+
+
 @bench_app.command("overload")
 def bench_overload(seconds: Annotated[float, typer.Option("--seconds", help="overload duration")] = 60.0,
                    factor: Annotated[float, typer.Option("--factor", help="publish rate / processing rate")] = 3.0,
@@ -230,6 +246,28 @@ def bench_loops(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
 
 
 SeedsOpt = Annotated[str, typer.Option("--seeds", help="synthetic seeds, comma separated")]
+
+
+@bench_app.command("policy-loops")
+def bench_policy_loops(dataset: DatasetsOpt = None,
+                       steps: Annotated[int, typer.Option("--steps", help="policy training steps per map")] = 40_000,
+                       write: WriteOpt = None) -> None:
+    """Two passes per dataset: map + grid world, train a policy, re-run with policy loop closures."""
+    from service.bench.policy_loops import run_policy_loops_bench
+
+    run_policy_loops_bench(console, dataset, steps, write)
+
+
+@bench_app.command("lc-batch")
+def bench_lc_batch(grid: Annotated[str, typer.Option("--map", help="grid configuration")] = "config2",
+                   steps: Annotated[int, typer.Option("--steps", help="training steps per variant")] = 40_000,
+                   plot: Annotated[Path, typer.Option("--plot", help="reward-curve PNG")] =
+                   Path("docs/lc_batch_ablation.png"),
+                   write: WriteOpt = None) -> None:
+    """Fig. 3.10: fixed 512, fixed 2048 and entropy-based batch sizes, reward curves and evaluation."""
+    from service.bench.lc_ablation import run_batch_ablation
+
+    run_batch_ablation(console, grid, steps, plot, write)
 
 
 def _seeds(text: str) -> list[int]:

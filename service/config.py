@@ -66,6 +66,9 @@ class LoopSettings(BaseModel):
     """Loop-closure candidates and their geometric verification."""
 
     source: Literal["off", "appearance", "policy", "both"] = "appearance"
+    policy: Path | None = Field(None, description="RL policy FILE.onnx (train-lc --from-map) for source policy/both")
+    policy_radius: int = Field(1, ge=0, description="policy candidates: keyframes within this many cells")
+    policy_candidates: int = Field(3, ge=1, description="policy candidates verified per proposal at most")
     min_gap_s: float = Field(5.0, ge=0, description="candidates are at least this much older")
     top_k: int = Field(3, ge=1)
     min_similarity: float = Field(0.5, ge=-1, le=1, description="global descriptor cosine similarity")

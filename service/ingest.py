@@ -48,11 +48,10 @@ class IngestQueue:
             self._cond.notify_all()
             return item
 
-    def wait_for_space(self, timeout: float, below: int | None = None) -> bool:
-        """Block until fewer than ``below`` (default: capacity) items wait (embedded replay's back-pressure)."""
-        limit = self.capacity if below is None else min(below, self.capacity)
-        with self._cond:
-            return self._cond.wait_for(lambda: len(self._items) < limit, timeout)
+    @property
+    def depth(self) -> int:
+        """Items waiting, read without the lock (a deque's length is read atomically): for status replies."""
+        return len(self._items)
 
     def __len__(self) -> int:
         with self._cond:

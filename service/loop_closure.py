@@ -93,14 +93,24 @@ class LoopCloser:
         self.places.restore(state["places"])
         self.keyframes = {e.index: e for e in state["keyframes"]}
 
-    def add_keyframe(self, entry: KeyframeEntry, rgb: np.ndarray) -> list[dict[str, Any]]:
-        """Store the keyframe, try its candidates, and return the new loop records."""
+    def add_keyframe(self, entry: KeyframeEntry, rgb: np.ndarray,
+                     proposed: list[tuple[int, str, float]] = ()) -> list[dict[str, Any]]:
+        """Store the keyframe, try its candidates, and return the new loop records.
+
+        ``proposed`` are candidates from elsewhere (the RL policy: (keyframe, source, score)); they are
+        tried first. The appearance and proximity sources run when ``source`` is appearance or both.
+        """
         descriptor = global_descriptor(rgb)
         c = self.config
         new: list[dict[str, Any]] = []
-        candidates = [(cand.index, "appearance", cand.similarity) for cand in
-                      self.places.query(descriptor, entry.timestamp, c.min_gap_s, c.top_k, c.min_similarity)]
-        if c.proximity:
+        candidates = [(i, src, score) for i, src, score in proposed if i in self.keyframes]
+        classical = c.source in ("appearance", "both")
+        if classical:
+            tried = {i for i, _, _ in candidates}
+            candidates += [(cand.index, "appearance", cand.similarity) for cand in
+                           self.places.query(descriptor, entry.timestamp, c.min_gap_s, c.top_k, c.min_similarity)
+                           if cand.index not in tried]
+        if classical and c.proximity:
             tried = {i for i, _, _ in candidates}
             candidates += [(i, "proximity", float("nan")) for i in self._nearby(entry) if i not in tried]
         for index, source, similarity in candidates:
@@ -108,7 +118,7 @@ class LoopCloser:
             if new[-1]["accepted"]:
                 break  # one loop per keyframe is enough to pull the graph
         self.places.add(entry.index, entry.timestamp, descriptor)
-        self.keyframes[entry.index] = entry
+        self.keyframes[entry.index] = replace(entry, features=entry.features.with_depth())  # only 3D side kept
         self.records.extend(new)
         if any(r["accepted"] for r in new):
             self._recheck()
@@ -136,8 +146,10 @@ class LoopCloser:
         record: dict[str, Any] = {
             "query_t": query.timestamp, "match_t": match.timestamp, "query_frame": query.frame,
             "match_frame": match.frame, "query_keyframe": query.index, "match_keyframe": match.index,
-            "source": source, "similarity": None if math.isnan(similarity) else round(similarity, 4),
+            "source": source, "similarity": None if math.isnan(similarity) or source == "policy" else round(similarity, 4),
             "accepted": False}
+        if source == "policy":
+            record["policy_probability"] = round(similarity, 4)
         try:
             rel = self.estimator.estimate(match.features, query.features, self.verify_config)
         except Rejected as exc:

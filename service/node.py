@@ -1,6 +1,11 @@
 """The service node: zenoh subscriber and queryables wired to the ingest queue and the pipeline.
 
-Zenoh callbacks only enqueue bytes or serialise a reply; decoding and graph work run on one worker thread.
+Zenoh callbacks only enqueue bytes or serialise a reply. A decoder thread takes raw messages from the ingest
+queue and validates and decodes them (PNG/JPEG decoding releases the GIL), handing at most two decoded frames
+to the worker thread, which runs the pipeline: decoding the next frame overlaps processing this one.
+After each frame the worker publishes an immutable ``MapSummary`` (counts, objects, loop records) that the
+``status``, ``objects`` and ``loops`` queryables read without waiting for the pipeline; only ``trajectory``
+(the optimised poses, computed on demand) takes the pipeline lock.
 With a state directory the node resumes from its newest good snapshot and writes one every N keyframes
 (on the worker thread, between frames) and on ``stop``.
 """
@@ -9,9 +14,11 @@ from __future__ import annotations
 
 import json
 import logging
+import queue
 import threading
 import time
 from collections import Counter
+from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
@@ -23,10 +30,22 @@ from service.ingest import IngestQueue
 from service.persistence import Persistence
 from service.pipeline import Pipeline
 from service.protocol import VERSION, FrameRejected, Limits, decode_frame
+from perception.frame import Frame
 from service.sources.base import Trajectory
 from service.stats import ServiceStats
 
 log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class MapSummary:
+    """What the queryables report of the map, taken by the worker between frames; never changed afterwards."""
+
+    counts: dict[str, Any] = field(default_factory=dict)  # status fields: keyframes, poses, factors, ...
+    objects: list[dict] = field(default_factory=list)
+    object_map_version: int = -1
+    loops: list[dict] = field(default_factory=list)
+    loops_key: tuple[int, int] = (-1, -1)  # (records, accepted) when ``loops`` was copied
 
 
 class ServiceNode:
@@ -40,18 +59,23 @@ class ServiceNode:
         self.stats = ServiceStats()
         self.pipeline = Pipeline(settings)
         self.limits = Limits(settings.ingest.max_payload_bytes, settings.ingest.max_image_pixels)
-        self._lock = threading.Lock()  # guards the pipeline between the worker and queryables
+        self._lock = threading.Lock()  # guards the pipeline between the worker and the trajectory queryable
+        self._summary_lock = threading.Lock()  # guards only the swap of ``_summary``
+        self._summary = MapSummary()
         self._stop = threading.Event()
-        self._busy = False
+        self._frame_done = threading.Condition()  # notified after each frame is processed, rejected or failed
+        self._decoded: queue.Queue[tuple[Frame, float]] = queue.Queue(maxsize=2)  # decoder -> worker
         self._last_version = self._last_loops = 0
         self._started = time.time()
         self._entities: list[Any] = []
+        self._decoder = threading.Thread(target=self._decode_loop, name="objslam-decoder", daemon=True)
         self._worker = threading.Thread(target=self._work, name="objslam-worker", daemon=True)
         self.persistence: Persistence | None = None
         if settings.state_dir is not None:
             ps = settings.persistence
             self.persistence = Persistence(settings.state_dir, settings.robot, ps.every_keyframes, ps.keep)
             self.persistence.resume(self._restore)
+        self._publish_summary()
 
     # ------------------------------------------------------------ lifecycle
 
@@ -64,16 +88,18 @@ class ServiceNode:
             self._entities.append(s.declare_queryable(f"{p}/{name}", self._replier(name, handler)))
         self.events = s.declare_publisher(f"{p}/events")
         self._entities.append(self.events)
+        self._decoder.start()
         self._worker.start()
         log.info("serving %s (protocol v%d)", p, VERSION)
 
     def stop(self) -> None:
         """Stop the worker after the current frame, write a last snapshot, and undeclare zenoh entities."""
         self._stop.set()
-        if self._worker.is_alive():
-            self._worker.join(timeout=10)
-        if len(self.queue):
-            log.info("stopping with %d queued frames unprocessed", len(self.queue))
+        for thread in (self._decoder, self._worker):
+            if thread.is_alive():
+                thread.join(timeout=10)
+        if len(self.queue) or self._decoded.qsize():
+            log.info("stopping with %d queued frames unprocessed", len(self.queue) + self._decoded.qsize())
         if self._worker.is_alive():
             log.error("the worker did not stop within 10 s: no final snapshot, the last periodic one stands")
         else:
@@ -85,16 +111,24 @@ class ServiceNode:
                 log.debug("undeclare failed: %s", exc)
         self._entities.clear()
 
+    @property
+    def completed(self) -> int:
+        """Frames processed, rejected, failed or dropped: every received frame ends in one of these."""
+        return self.stats.completed() + self.queue.dropped
+
     def wait_done(self, frames: int, timeout: float) -> bool:
         """Wait until ``frames`` frames have been received and each processed, rejected or dropped."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
-            s = self.stats
-            if s.received >= frames and len(self.queue) == 0 and not self._busy \
-                    and s.processed + sum(s.rejected.values()) + self.queue.dropped + sum(s.errors.values()) >= frames:
+            if self.stats.received >= frames and self.completed >= frames:
                 return True
             time.sleep(0.005)
         return False
+
+    def wait_completed(self, frames: int, timeout: float) -> bool:
+        """Block until at least ``frames`` frames are completed (``run``'s back-pressure on frames in flight)."""
+        with self._frame_done:
+            return self._frame_done.wait_for(lambda: self.completed >= frames, timeout)
 
     # ------------------------------------------------------------ ingest
 
@@ -107,26 +141,61 @@ class ServiceNode:
         if self.queue.put(payload):
             log.debug("ingest queue full: dropped the oldest frame")
 
-    def _work(self) -> None:
+    def _decode_loop(self) -> None:
+        """Decoder thread: raw messages from the ingest queue, validated and decoded, to the worker."""
         while not self._stop.is_set():
             item = self.queue.get(timeout=0.1)
             if item is None:
                 continue
-            self._busy = True
+            frame = self._decode(item.payload)
+            if frame is None:
+                self._completed_one()
+                continue
+            while not self._stop.is_set():
+                try:
+                    self._decoded.put((frame, item.received), timeout=0.1)
+                    break
+                except queue.Full:
+                    continue
+
+    def _decode(self, payload: bytes) -> Frame | None:
+        """The decoded frame, or None when it was rejected (counted by reason) or decoding failed."""
+        t0 = time.monotonic()
+        try:
+            frame = decode_frame(payload, self.limits)
+        except FrameRejected as exc:
+            self.stats.count_rejected(exc.reason.value)
+            log.debug("rejected frame: %s", exc)
+            return None
+        except Exception:  # the decoder must survive anything a message can trigger
+            log.exception("unexpected error while decoding a frame")
+            self.stats.count_error("internal")
+            return None
+        self.stats.time("decode", time.monotonic() - t0)
+        return frame
+
+    def _work(self) -> None:
+        """Worker thread: decoded frames through the pipeline, one at a time."""
+        while not self._stop.is_set():
             try:
-                self._process(item.payload, item.received)
+                frame, received = self._decoded.get(timeout=0.1)
+            except queue.Empty:
+                continue
+            try:
+                self._process(frame, received)
             except Exception:  # the worker must survive anything a frame can trigger
                 log.exception("unexpected error while processing a frame")
                 self.stats.count_error("internal")
             finally:
-                self._busy = False
+                self._completed_one()
 
-    def _process(self, payload: bytes, received: float) -> None:
-        t0 = time.monotonic()
+    def _completed_one(self) -> None:
+        with self._frame_done:
+            self._frame_done.notify_all()
+
+    def _process(self, frame: Frame, received: float) -> None:
+        t1 = time.monotonic()
         try:
-            frame = decode_frame(payload, self.limits)
-            t1 = time.monotonic()
-            self.stats.time("decode", t1 - t0)
             with self._lock:
                 self.pipeline.timings.clear()
                 self.pipeline.process(frame)
@@ -140,6 +209,7 @@ class ServiceNode:
             self.stats.count_error("solver")
             return
         self.stats.time("graph", t2 - t1)
+        self._publish_summary()
         self._publish_changes()
         for stage, seconds in stage_times.items():
             self.stats.time(stage, seconds)
@@ -195,16 +265,43 @@ class ServiceNode:
         self._last_version = pipeline.object_map_version
         self._last_loops = pipeline.loops.n_accepted if pipeline.loops is not None else 0
 
+    def _publish_summary(self) -> None:
+        """Take the map's counts, objects and loop records for the queryables (worker thread, between frames).
+
+        Objects and loop records are copied only when they changed, so a frame that changes neither costs a
+        few attribute reads.
+        """
+        p, old = self.pipeline, self._summary
+        graph = p.graph
+        objects = old.objects if old.object_map_version == p.object_map_version else p.object_list()
+        records = p.loops.records if p.loops is not None else []
+        accepted = p.loops.n_accepted if p.loops is not None else 0
+        key = (len(records), accepted)
+        loops = old.loops if key == old.loops_key else [dict(r) for r in records]
+        counts = {"keyframes": graph.num_keyframes, "poses": graph.num_keyframes, "factors": graph.num_factors,
+                  "landmarks": graph.num_landmarks, "tracking_lost": p.tracking_lost,
+                  "loop_closures": {"accepted": accepted, "rejected": len(records) - accepted},
+                  "keyframe_detections_by_class": dict(p.detections_by_class), "objects": len(objects),
+                  "objects_by_class": dict(Counter(o["label"] for o in objects))}
+        summary = MapSummary(counts, objects, p.object_map_version, loops, key)
+        with self._summary_lock:
+            self._summary = summary
+
+    @property
+    def summary(self) -> MapSummary:
+        with self._summary_lock:
+            return self._summary
+
     def _publish_changes(self) -> None:
         """``events``: the object map after each re-clustering, and each newly accepted loop closure."""
-        version = self.pipeline.object_map_version
-        loops = self.pipeline.loops.n_accepted if self.pipeline.loops is not None else 0
+        summary = self.summary
+        version, loops = summary.object_map_version, summary.counts["loop_closures"]["accepted"]
         events = []
         if version != self._last_version:
-            events.append({"type": "objects", "objects": self.pipeline.object_list()})
+            events.append({"type": "objects", "objects": summary.objects})
         if loops != self._last_loops:
             events.append({"type": "loop_closure", "accepted": loops,
-                           "latest": [r for r in self.pipeline.loop_records() if r["accepted"]][-1:]})
+                           "latest": [r for r in summary.loops if r["accepted"]][-1:]})
         self._last_version, self._last_loops = version, loops
         for event in events:
             try:
@@ -226,22 +323,15 @@ class ServiceNode:
         return reply
 
     def status(self) -> dict[str, Any]:
-        """The ``status`` reply (schema in docs/protocol.md)."""
+        """The ``status`` reply (schema in docs/protocol.md), without waiting for the frame being processed."""
         snap = self.stats.snapshot()
-        with self._lock:
-            graph = self.pipeline.graph
-            objects = self.pipeline.object_list()
-            snap.update(keyframes=graph.num_keyframes, poses=graph.num_keyframes, factors=graph.num_factors,
-                        tracking_lost=self.pipeline.tracking_lost, loop_closures=self._loop_counts(),
-                        keyframe_detections_by_class=dict(self.pipeline.detections_by_class),
-                        objects=len(objects), objects_by_class=dict(Counter(o["label"] for o in objects)))
+        snap.update(self.summary.counts)
         snap.update(
             robot=self.settings.robot,
             protocol_version=VERSION,
             frames_dropped=self.queue.dropped,
-            queue_depth=len(self.queue),
+            queue_depth=self.queue.depth,
             queue_capacity=self.queue.capacity,
-            landmarks=0,
             uptime_s=round(time.time() - self._started, 3),
             persistence=self.persistence.status() if self.persistence is not None else None,
         )
@@ -257,6 +347,7 @@ class ServiceNode:
         """End of a replayed sequence: final object clustering."""
         with self._lock:
             self.pipeline.finish()
+        self._publish_summary()
 
     def trajectories(self) -> tuple[Trajectory, Trajectory]:
         """(optimised, odometry) trajectories of every processed frame, taken consistently."""
@@ -264,20 +355,12 @@ class ServiceNode:
             return self.pipeline.trajectory(), self.pipeline.odometry_trajectory()
 
     def objects_reply(self) -> dict[str, Any]:
-        """Objects as ellipsoids (SPEC section 4 fields)."""
-        with self._lock:
-            return {"robot": self.settings.robot, "objects": self.pipeline.object_list()}
+        """Objects as ellipsoids (SPEC section 4 fields), as of the last processed frame."""
+        return {"robot": self.settings.robot, "objects": self.summary.objects}
 
     def loops_reply(self) -> dict[str, Any]:
-        """Every loop-closure candidate with its verdict (SPEC section 4 fields)."""
-        with self._lock:
-            return {"robot": self.settings.robot, "loops": self.pipeline.loop_records()}
-
-    def _loop_counts(self) -> dict[str, int]:
-        loops = self.pipeline.loops
-        if loops is None:
-            return {"accepted": 0, "rejected": 0}
-        return {"accepted": loops.n_accepted, "rejected": loops.n_rejected}
+        """Every loop-closure candidate with its verdict (SPEC section 4 fields), as of the last processed frame."""
+        return {"robot": self.settings.robot, "loops": self.summary.loops}
 
 
 def _map_settings(settings: Settings) -> dict[str, Any]:

@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import tempfile
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 
 from graph.geometry import pose_to_tum
 from graph.metrics import TrajectoryError, match_timestamps, trajectory_error
@@ -44,9 +46,22 @@ def evaluate(traj: Trajectory, gt: Trajectory | None) -> TrajectoryError | None:
 
 
 def write_outputs(out: Path, trajectory: Trajectory, odometry: Trajectory, summary: dict[str, Any],
-                  gt: Trajectory | None, objects: list | None = None, loops: list | None = None) -> dict[str, Any]:
-    """Write every output file into ``out``; returns the summary with the metrics added."""
+                  gt: Trajectory | None, objects: list | None = None, loops: list | None = None,
+                  cloud: np.ndarray | None = None) -> dict[str, Any]:
+    """Write every output file into ``out``; returns the summary with the metrics added.
+
+    With map points (``cloud``) also ``cloud.npy`` and, when the trajectory crosses itself, the map's grid
+    world ``grid.json`` / ``grid.png`` for ``train-lc --from-map``.
+    """
     out.mkdir(parents=True, exist_ok=True)
+    if cloud is not None:
+        buf = io.BytesIO()
+        np.save(buf, np.asarray(cloud, np.float32))
+        atomic_write(out / "cloud.npy", buf.getvalue())
+        from service.lc_grid import try_write_grid
+
+        summary = {**summary, "grid_world": try_write_grid(out, summary.get("dataset", "map"), trajectory, cloud,
+                                                           objects or [])}
     atomic_write(out / "trajectory.tum", tum_text(trajectory))
     atomic_write(out / "odometry.tum", tum_text(odometry))
     atomic_write(out / "objects.json", json.dumps(objects or [], indent=1))

@@ -21,7 +21,8 @@ from perception.frame import CameraModel, Frame
 from perception.frontend import ExternalOdometry, KeyframePolicy, Step, VisualOdometry
 from perception.object_map import ObjectMapper, object_json
 from perception.odometry import FeatureExtractor, OdometryConfig, RelativePoseEstimator
-from perception.registration import depth_in_color
+from perception.registration import backproject, depth_in_color
+from rl.proposer import PolicyProposer
 from service.config import Settings
 from service.loop_closure import KeyframeEntry, LoopCloser, LoopConfig
 from service.protocol import FrameRejected, Reason
@@ -40,6 +41,21 @@ class FrameRecord:
     is_keyframe: bool
     odometry: np.ndarray
     from_keyframe: np.ndarray
+
+
+def map_points(frame: Frame, step: int = 32, max_depth_m: float = 4.0) -> np.ndarray:
+    """A sparse grid of the frame's depth points (camera frame, float32) for the map's occupancy."""
+    pts, _, _ = backproject(frame.depth_m(), frame.camera.depth, step)
+    return pts[pts[:, 2] <= max_depth_m].astype(np.float32)
+
+
+def load_proposer(path, radius: int, candidates: int) -> PolicyProposer:
+    """The RL loop-closure proposer for a policy file (``loops.policy``)."""
+    from rl.policy import OnnxPolicy  # onnxruntime session only when a policy is configured
+
+    if path is None:
+        raise ValueError("loops.source policy/both needs loops.policy (a FILE.onnx from train-lc --from-map)")
+    return PolicyProposer(OnnxPolicy(path), radius=radius, max_candidates=candidates)
 
 
 def from_settings(cls, *sections: BaseModel):
@@ -77,6 +93,8 @@ class Pipeline:
         self._extractor: FeatureExtractor | None = None
         self.records: list[FrameRecord] = []
         self._kf_odometry: list[np.ndarray] = []
+        self._kf_points: list[np.ndarray] = []  # sparse depth samples per keyframe, camera frame, float32
+        self.proposer: PolicyProposer | None = None
         self.tracking_lost = 0
         self.timings: dict[str, float] = {}
         self._detector = None
@@ -120,10 +138,12 @@ class Pipeline:
         else:
             self.frontend = VisualOdometry(camera, self.policy, self.odometry_config)
         lc = self.settings.loops
-        if lc.source in ("appearance", "both"):
+        if lc.source != "off":
             self.loops = LoopCloser(self.graph, RelativePoseEstimator(camera, self.odometry_config),
                                     from_settings(LoopConfig, lc))
             self._extractor = FeatureExtractor(camera, self.odometry_config)
+        if lc.source in ("policy", "both"):
+            self.proposer = load_proposer(lc.policy, lc.policy_radius, lc.policy_candidates)
 
     def _check(self, frame: Frame) -> None:
         if frame.timestamp == self.last_timestamp:
@@ -134,6 +154,9 @@ class Pipeline:
             raise FrameRejected(Reason.EMPTY_DEPTH, "depth image has no valid pixel")
         if isinstance(self.frontend, ExternalOdometry) and frame.odometry is None:
             raise FrameRejected(Reason.NO_ODOMETRY, "this stream carries odometry but the frame has none")
+        if isinstance(self.frontend, ExternalOdometry) and self.records and self.policy.implausible(
+                self.records[-1].odometry, frame.odometry, frame.timestamp - self.last_timestamp):
+            raise FrameRejected(Reason.ODOMETRY_JUMP, "odometry jumped implausibly far since the last frame")
 
     def _add_keyframe(self, frame: Frame, step: Step) -> FrameRecord:
         if not self._kf_odometry:
@@ -144,14 +167,36 @@ class Pipeline:
                 if kf - back >= 0:
                     self.graph.add_between(kf - back, kf, T, sigma_m, sigma_deg)
         self._kf_odometry.append(step.pose)
+        self._kf_points.append(map_points(frame))
         self._detect(kf, frame)
         self._map_objects(kf, frame)
         if self.loops is not None:
             t0 = time.perf_counter()
             features = step.features if step.features is not None else self._extractor.extract(frame)
-            self.loops.add_keyframe(KeyframeEntry(kf, frame.timestamp, frame.seq, features), frame.rgb)
+            policy = self._policy_candidates(kf)
+            self.loops.add_keyframe(KeyframeEntry(kf, frame.timestamp, frame.seq, features), frame.rgb, policy)
             self.timings["loop_closure"] = time.perf_counter() - t0
         return FrameRecord(frame.timestamp, frame.seq, kf, True, step.pose, np.eye(4))
+
+    def _policy_candidates(self, kf: int) -> list[tuple[int, str, float]]:
+        """The RL policy's candidates for this keyframe (Sec. 3.8): earlier keyframes where it says we are."""
+        if self.proposer is None:
+            return []
+        t0 = time.perf_counter()
+        proposal = self.proposer.observe(kf, self.graph.pose(kf))
+        self.timings["policy"] = time.perf_counter() - t0
+        if proposal is None:
+            return []
+        return [(i, "policy", proposal.probability) for i in proposal.candidates]
+
+    def cloud(self) -> np.ndarray:
+        """Sparse map points (N, 3) in the trajectory frame: every keyframe's samples at its current estimate."""
+        if not self._kf_points:
+            return np.zeros((0, 3), np.float32)
+        poses = self.graph.poses()
+        parts = [pts @ poses[k][:3, :3].T.astype(np.float32) + poses[k][:3, 3].astype(np.float32)
+                 for k, pts in enumerate(self._kf_points[:len(poses)])]
+        return np.concatenate(parts)
 
     def _detect(self, kf: int, frame: Frame) -> None:
         """Keyframe detections: the frame's own, else the ONNX detector's (SPEC 6.1)."""
@@ -236,6 +281,7 @@ class Pipeline:
                         "odometry": np.array([x.odometry for x in r]).reshape(-1, 4, 4),
                         "from_keyframe": np.array([x.from_keyframe for x in r]).reshape(-1, 4, 4)},
             "kf_odometry": np.array(self._kf_odometry).reshape(-1, 4, 4),
+            "kf_points": self._kf_points,
             "tracking_lost": self.tracking_lost,
             "keyframe_detections": self.keyframe_detections,
             "detections_by_class": dict(self.detections_by_class),
@@ -258,6 +304,7 @@ class Pipeline:
         p.records = [FrameRecord(float(t), int(s), int(k), bool(kf), odo, off) for t, s, k, kf, odo, off in zip(
             r["timestamp"], r["seq"], r["keyframe"], r["is_keyframe"], r["odometry"], r["from_keyframe"])]
         p._kf_odometry = list(state["kf_odometry"])
+        p._kf_points = list(state.get("kf_points", []))
         p.tracking_lost = state["tracking_lost"]
         p.keyframe_detections = state["keyframe_detections"]
         p.detections_by_class = Counter(state["detections_by_class"])

@@ -54,6 +54,7 @@ class Reason(str, Enum):
     OUT_OF_ORDER = "out_of_order"
     EMPTY_DEPTH = "empty_depth"
     NO_ODOMETRY = "no_odometry"
+    ODOMETRY_JUMP = "odometry_jump"
 
 
 class FrameRejected(Exception):

@@ -23,8 +23,10 @@ def run_dataset(spec: str | Dataset, out: Path, settings: Settings, max_frames: 
                 camera_overrides: dict[str, float] | None = None, progress: bool = True) -> dict[str, Any]:
     """Replay ``spec`` into a service on one embedded zenoh session and write the outputs into ``out``.
 
-    The same ServiceNode as ``serve`` receives the frames through a zenoh subscriber; the replay waits for
-    room in the ingest queue instead of letting frames drop.
+    The same ServiceNode as ``serve`` receives the frames through a zenoh subscriber. Zenoh delivers to the
+    subscriber asynchronously, so the ingest queue's length does not show the frames still in flight; the
+    replay instead keeps at most ``window`` frames published and not yet completed (processed, rejected or
+    dropped), below the queue's capacity, so no frame is dropped.
     """
     dataset = open_dataset(spec, camera_overrides) if isinstance(spec, str) else spec
     settings = settings.model_copy(update={"state_dir": None})  # a run starts a new map and keeps no snapshots
@@ -33,8 +35,17 @@ def run_dataset(spec: str | Dataset, out: Path, settings: Settings, max_frames: 
     try:
         node.start()
         pub = frame_publisher(session, f"{node.prefix}/rgbd")
-        replayer = Replayer(dataset, pub.put, max_rate=True, max_frames=max_frames,
-                            before_publish=lambda: node.queue.wait_for_space(60.0, below=2), progress=progress)
+        window = max(1, min(8, node.queue.capacity // 2))
+        published = 0
+
+        def back_pressure() -> None:
+            nonlocal published
+            if not node.wait_completed(published + 1 - window, 60.0):
+                log.warning("the service completed no frame for 60 s; publishing anyway")
+            published += 1
+
+        replayer = Replayer(dataset, pub.put, max_rate=True, max_frames=max_frames, before_publish=back_pressure,
+                            progress=progress)
         started = time.monotonic()
         result = replayer.run()
         if not node.wait_done(result.frames, timeout=120.0):
@@ -46,7 +57,8 @@ def run_dataset(spec: str | Dataset, out: Path, settings: Settings, max_frames: 
         summary = _summary(dataset.name, result.frames, elapsed, status)
         traj, odom = node.trajectories()
         objects = node.objects_reply()["objects"]
-        return write_outputs(out, traj, odom, summary, dataset.ground_truth, objects, node.loops_reply()["loops"])
+        return write_outputs(out, traj, odom, summary, dataset.ground_truth, objects, node.loops_reply()["loops"],
+                             node.pipeline.cloud())
     finally:
         node.stop()
         session.close()
@@ -104,4 +116,5 @@ def _write_state_outputs(node: ServiceNode, out: Path) -> None:
     traj, odom = node.trajectories()
     status = node.status()
     summary = _summary(f"serve {node.prefix}", status["frames_received"], status["uptime_s"], status)
-    write_outputs(out, traj, odom, summary, None, node.objects_reply()["objects"], node.loops_reply()["loops"])
+    write_outputs(out, traj, odom, summary, None, node.objects_reply()["objects"], node.loops_reply()["loops"],
+                  node.pipeline.cloud())

@@ -8,6 +8,16 @@ from collections import Counter, deque
 import numpy as np
 
 
+def summarize(seconds: np.ndarray) -> dict[str, float | int]:
+    """Count and p50 / p95 / p99 / max in milliseconds of durations given in seconds."""
+    if not len(seconds):
+        return {"n": 0}
+    arr = seconds * 1e3
+    p50, p95, p99 = np.percentile(arr, [50, 95, 99])
+    return {"n": len(arr), "p50_ms": round(float(p50), 3), "p95_ms": round(float(p95), 3),
+            "p99_ms": round(float(p99), 3), "max_ms": round(float(arr.max()), 3)}
+
+
 class LatencyWindow:
     """The last ``size`` durations of one stage, in seconds; percentiles reported in milliseconds."""
 
@@ -17,13 +27,12 @@ class LatencyWindow:
     def add(self, seconds: float) -> None:
         self._values.append(seconds)
 
+    def values(self) -> np.ndarray:
+        """A copy of the durations (taken under the owner's lock; percentiles are computed outside it)."""
+        return np.fromiter(self._values, dtype=float, count=len(self._values))
+
     def summary(self) -> dict[str, float | int]:
-        if not self._values:
-            return {"n": 0}
-        arr = np.fromiter(self._values, dtype=float) * 1e3
-        p50, p95, p99 = np.percentile(arr, [50, 95, 99])
-        return {"n": len(arr), "p50_ms": round(float(p50), 3), "p95_ms": round(float(p95), 3),
-                "p99_ms": round(float(p99), 3), "max_ms": round(float(arr.max()), 3)}
+        return summarize(self.values())
 
 
 class ServiceStats:
@@ -53,6 +62,11 @@ class ServiceStats:
         with self._lock:
             self.errors[kind] += 1
 
+    def completed(self) -> int:
+        """Frames processed, rejected or failed (dropped frames are the ingest queue's count)."""
+        with self._lock:
+            return self.processed + sum(self.rejected.values()) + sum(self.errors.values())
+
     def counters(self) -> dict:
         """The frame counters as plain data (kept in snapshots; latencies are not)."""
         with self._lock:
@@ -69,12 +83,15 @@ class ServiceStats:
             self.stages.setdefault(stage, LatencyWindow()).add(seconds)
 
     def snapshot(self) -> dict:
+        """Counters and latency percentiles; the lock is held only to copy, not for the percentiles."""
         with self._lock:
-            return {
+            snap = {
                 "frames_received": self.received,
                 "frames_processed": self.processed,
                 "frames_rejected": dict(self.rejected),
                 "frames_rejected_total": sum(self.rejected.values()),
                 "errors": dict(self.errors),
-                "latency": {name: w.summary() for name, w in self.stages.items()},
             }
+            durations = {name: w.values() for name, w in self.stages.items()}
+        snap["latency"] = {name: summarize(values) for name, values in durations.items()}
+        return snap

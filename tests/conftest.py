@@ -38,5 +38,16 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.fixture
+def router():
+    """A zenoh router on 127.0.0.1 (no multicast): (its session, the endpoint clients connect to)."""
+    from service.bench.rig import router as open_router
+
+    port = free_port()
+    session = open_router(port)
+    yield session, f"tcp/127.0.0.1:{port}"
+    session.close()
+
+
 requires_redkitchen = pytest.mark.skipif(
     not REDKITCHEN.is_dir(), reason=f"real data not found at {REDKITCHEN} (../shared/data is absent)")

@@ -26,7 +26,7 @@ CLASSES = ("good", "truncated", "random_bytes", "random_after_preamble", "byte_f
            "huge_integer", "missing_field", "unknown_encoding", "wrong_size", "image_too_large",
            "undecodable_image", "bad_intrinsics", "bad_pose", "duplicate_timestamp", "out_of_order",
            "zero_depth", "no_odometry", "absurd_box", "bad_detection", "clipped_huge_box", "empty_detections",
-           "resolution_change", "odometry_jump")
+           "resolution_change", "wild_odometry", "odometry_jump")
 
 
 def pack(header: dict | bytes, body: bytes, magic: bytes = MAGIC, version: int = VERSION,
@@ -99,15 +99,22 @@ class Storm:
         header.update(timestamp=t, odometry=[0.1 * t, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0], detections=[])
         return self._processed(header, body)
 
-    def odometry_jump(self) -> Message:
-        """Valid but wild odometry: a random rotation and a jump of up to 100 m.
-
-        Kilometre jumps make iSAM2 throw (an indeterminate system); test_fuzz.py covers what follows.
-        """
+    def wild_odometry(self) -> Message:
+        """Valid odometry with a random rotation and a jump of up to 0.9 m: within what a frame may move."""
         header, body = self.valid()
         q = self.rng.normal(size=4)
-        header["odometry"] = [*self.rng.uniform(-100.0, 100.0, 3).tolist(), *(q / np.linalg.norm(q)).tolist()]
+        offset = self.rng.normal(size=3)
+        offset *= self.rng.uniform(0.0, 0.9) / np.linalg.norm(offset)
+        header["odometry"] = [*(np.array(header["odometry"][:3]) + offset).tolist(), *(q / np.linalg.norm(q)).tolist()]
         return self._processed(header, body)
+
+    def odometry_jump(self) -> Message:
+        """Odometry 10 m to 10 km away from the last processed frame's (a glitch): rejected, never in the graph."""
+        header, body = self.valid()
+        direction = self.rng.normal(size=3)
+        offset = direction / np.linalg.norm(direction) * 10.0 ** self.rng.uniform(1.0, 4.0)
+        header["odometry"][:3] = (np.array(header["odometry"][:3]) + offset).tolist()
+        return pack(header, body), Reason.ODOMETRY_JUMP.value
 
     # ------------------------------------------------------------ preamble and framing
 

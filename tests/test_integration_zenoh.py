@@ -27,18 +27,6 @@ def _objslam(*args: str, **kw) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "service", *args], env=env, **kw)
 
 
-@pytest.fixture
-def router():
-    port = free_port()
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
-    yield session, f"tcp/127.0.0.1:{port}"
-    session.close()
-
-
 def _get(session: zenoh.Session, key: str, timeout: float = 5.0) -> dict | None:
     for reply in session.get(key, timeout=timeout):
         if reply.ok is not None:

@@ -15,7 +15,6 @@ import zenoh
 
 from graph.geometry import pose_from_tum
 from service.sources import open_dataset
-from tests.conftest import free_port
 
 pytestmark = pytest.mark.integration
 ROBOTS = {  # robot -> (dataset, frames): different seeds and lengths, small images so replay is quick
@@ -27,18 +26,6 @@ ROBOTS = {  # robot -> (dataset, frames): different seeds and lengths, small ima
 def _objslam(*args: str, **kw) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "service", *args], env={**os.environ, "PYTHONUNBUFFERED": "1"},
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
-
-
-@pytest.fixture
-def router():
-    port = free_port()
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
-    yield session, f"tcp/127.0.0.1:{port}"
-    session.close()
 
 
 def _get(session: zenoh.Session, key: str, timeout: float = 5.0) -> dict | None:

@@ -6,7 +6,6 @@ it exactly (the graph is rebuilt by replaying iSAM2's update log, not re-optimis
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 import signal
@@ -16,7 +15,6 @@ import time
 
 import numpy as np
 import pytest
-import zenoh
 from scipy.spatial.transform import Rotation
 
 from graph.geometry import pose_from_tum
@@ -29,7 +27,6 @@ from service.protocol import decode_frame, encode_frame
 from service.replay import frame_publisher
 from service.sources import open_dataset
 from service.zenoh_session import open_session
-from tests.conftest import free_port
 from tests.test_integration_zenoh import _get, _wait_for_service
 
 FRAMES = 160
@@ -230,18 +227,6 @@ def test_corrupt_newest_snapshot_falls_back_to_the_previous_one_and_reports_it(t
 
 
 # ------------------------------------------------------------ (b, c) serve in a subprocess
-
-
-@pytest.fixture
-def router():
-    port = free_port()
-    conf = zenoh.Config()
-    conf.insert_json5("mode", '"router"')
-    conf.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
-    yield session, f"tcp/127.0.0.1:{port}"
-    session.close()
 
 
 def _objslam(*args: str, **kw) -> subprocess.Popen:

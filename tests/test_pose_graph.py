@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from graph.pose_graph import PoseGraph
+from graph.pose_graph import FactorRecord, PoseGraph, SolverError
 
 
 def _step(rng) -> np.ndarray:
@@ -62,3 +62,127 @@ def test_loop_closure_pulls_a_drifted_chain_back_and_can_be_retracted():
     assert before > 0.1 and after < 0.02
     g.remove_factors([index])
     assert np.linalg.norm(g.pose(40)[:3, 3] - true[40][:3, 3]) == pytest.approx(before, rel=0.05)
+
+
+def _chain(n: int, rng, start: np.ndarray | None = None) -> tuple[PoseGraph, list[np.ndarray]]:
+    g = PoseGraph()
+    chain = [np.eye(4) if start is None else start]
+    g.add_first(chain[0])
+    for _ in range(n):
+        rel = _step(rng)
+        g.add_keyframe(rel)
+        chain.append(chain[-1] @ rel)
+    return g, chain
+
+
+def test_a_failed_update_leaves_the_graph_as_before_and_later_keyframes_still_go_in():
+    g, chain = _chain(11, np.random.default_rng(2))
+    before = g.poses()
+    # the shape of update that used to poison iSAM2: a new keyframe's value with a factor iSAM2 rejects
+    # (here: to a keyframe that does not exist); iSAM2 kept x12, so every later keyframe failed with
+    # "key x12 already exists"
+    with pytest.raises(SolverError):
+        g._update([FactorRecord(11, 30, np.eye(4), 0.02, 1.0)], [chain[-1]])
+    with pytest.raises(SolverError):
+        g.add_between(3, 40, np.eye(4), 0.02, 1.0)
+    assert (g.num_keyframes, g.num_factors, len(g.factors), g.factorization) == (12, 12, 12, "CHOLESKY")
+    assert np.array_equal(g.poses(), before)
+    for _ in range(5):
+        g.add_keyframe(_step(np.random.default_rng(3)))
+    assert g.num_keyframes == 17 and g.pose(16).shape == (4, 4)
+    restored = PoseGraph.from_state(g.state())
+    assert np.array_equal(restored.poses(), g.poses())
+
+
+def test_a_long_chain_switches_from_cholesky_to_qr_instead_of_failing():
+    g = PoseGraph()
+    g.add_first(np.eye(4))
+    step = np.eye(4)
+    step[0, 3] = 0.1
+    for _ in range(2000):  # ~170 m without a loop closure: Cholesky finds the system indeterminant
+        g.add_keyframe(step, 0.05, 3.0)
+    assert g.factorization == "QR" and g.num_keyframes == 2001 and g.num_factors == 2001
+    np.testing.assert_allclose(g.pose(2000)[:3, 3], [200.0, 0.0, 0.0], atol=1e-6)
+    restored = PoseGraph.from_state(g.state())
+    assert restored.factorization == "QR" and np.array_equal(restored.poses(), g.poses())
+
+
+def _observe(T_world_cam: np.ndarray, point: np.ndarray) -> np.ndarray:
+    return np.linalg.inv(T_world_cam)[:3, :3] @ point + np.linalg.inv(T_world_cam)[:3, 3]
+
+
+def test_a_landmark_enters_the_solver_once_two_keyframes_observed_it():
+    g, chain = _chain(6, np.random.default_rng(4))
+    point = chain[0][:3, 3] + np.array([0.3, -0.2, 2.0])
+    g.add_landmark(7)
+    assert g.add_landmark_observation(7, 0, _observe(chain[0], point), 0.02) is None
+    assert g.add_landmark_observation(7, 0, _observe(chain[0], point), 0.02) is None  # same keyframe again
+    assert g.num_landmarks == 0 and g.num_factors == 7
+    index = g.add_landmark_observation(7, 3, _observe(chain[3], point), 0.02)
+    assert index == len(g.factors) - 1 and g.num_landmarks == 1 and g.num_factors == 10
+    np.testing.assert_allclose(g.landmark(7), point, atol=1e-6)
+    assert g.add_landmark_observation(7, 5, _observe(chain[5], point), 0.02) == index + 1
+    np.testing.assert_allclose(g.landmarks()[7], point, atol=1e-6)
+    with pytest.raises(ValueError):
+        g.add_landmark_observation(8, 0, [0.0, 0.0, 1.0], 0.02)  # never added
+
+
+def test_a_landmark_with_a_prior_enters_at_once_and_observations_pull_drifted_poses():
+    rng = np.random.default_rng(5)
+    g = PoseGraph()
+    g.add_first(np.eye(4))
+    truth, odometry = [np.eye(4)], [np.eye(4)]
+    points = {j: np.array([np.cos(j), np.sin(j), 0.5]) * 3.0 for j in range(6)}
+    assert g.add_landmark(0, points[0], sigma_m=0.01) and g.num_landmarks == 1
+    for j in range(1, 6):
+        g.add_landmark(j)
+    bias = np.eye(4)
+    bias[:3, 3] = [0.01, 0.0, 0.0]  # odometry drifts 1 cm per keyframe
+    for k in range(1, 31):
+        rel = _step(rng)
+        truth.append(truth[-1] @ rel)
+        g.add_keyframe(rel @ bias, 0.05, 2.0)
+        odometry.append(odometry[-1] @ rel @ bias)
+        for j, p in points.items():
+            g.add_landmark_observation(j, k, _observe(truth[-1], p), 0.005)
+    assert g.num_landmarks == 6
+    drift = np.linalg.norm(odometry[-1][:3, 3] - truth[-1][:3, 3])
+    error = np.linalg.norm(g.pose(30)[:3, 3] - truth[-1][:3, 3])
+    assert drift > 0.2 and error < 0.05
+    for j, p in points.items():
+        assert np.linalg.norm(g.landmark(j) - p) < 0.05
+
+
+def test_landmarks_and_waiting_observations_round_trip_through_state():
+    from service.persistence import decode, encode, seal, unseal
+
+    g, chain = _chain(8, np.random.default_rng(6))
+    points = [np.array([1.0, 0.5, 2.0]), np.array([-1.0, 0.2, 3.0])]
+    for j, p in enumerate(points):
+        g.add_landmark(j)
+        g.add_landmark_observation(j, 2, _observe(chain[2], p), 0.02)
+    g.add_landmark_observation(0, 6, _observe(chain[6], points[0]), 0.02)  # landmark 1 is still waiting
+    g.add_landmark(2, [0.0, 0.0, 1.0], 0.1)
+    h = PoseGraph.from_state(decode(unseal(seal(encode(g.state())))))
+    assert np.array_equal(h.poses(), g.poses()) and h.landmarks().keys() == {0, 2}
+    assert np.array_equal(h.landmark(0), g.landmark(0))
+    for graph in (g, h):  # the waiting observation is kept: a second keyframe inserts landmark 1 in both
+        assert graph.add_landmark_observation(1, 7, _observe(chain[7], points[1]), 0.02) == len(graph.factors) - 1
+    assert np.array_equal(h.landmark(1), g.landmark(1)) and len(h.factors) == len(g.factors)
+
+
+def test_a_landmark_whose_observations_are_all_retracted_leaves_the_solver_until_seen_again():
+    g, chain = _chain(4, np.random.default_rng(7))
+    p = np.array([0.5, 0.5, 2.0])
+    g.add_landmark(0)
+    g.add_landmark_observation(0, 1, _observe(chain[1], p), 0.02)
+    last = g.add_landmark_observation(0, 3, _observe(chain[3], p), 0.02)
+    g.remove_factors([last])
+    assert g.num_landmarks == 1  # one observation still determines it
+    g.remove_factors([last - 1])
+    assert g.num_landmarks == 0 and g.landmarks() == {} and g.num_factors == 5
+    assert g.add_landmark_observation(0, 2, _observe(chain[2], p), 0.02) is None
+    g.add_landmark_observation(0, 4, _observe(chain[4], p), 0.02)
+    np.testing.assert_allclose(g.landmark(0), p, atol=1e-6)
+    h = PoseGraph.from_state(g.state())
+    assert np.array_equal(h.landmark(0), g.landmark(0)) and h.num_landmarks == 1

@@ -25,6 +25,15 @@ def machine() -> str:
     return f"{os.cpu_count()} cores ({cpu}), {mem:.0f} GiB, Python {platform.python_version()}"
 
 
+def load_note(load: float) -> str:
+    """A sentence for a table's notes when other work shared the machine while it was measured."""
+    cores = os.cpu_count() or 1
+    if load <= cores * 0.75:
+        return ""
+    return (f" Measured while other jobs ran on the machine (1-minute load average {load:.1f} on {cores} cores): "
+            "times are longer and rates lower than on an idle machine.")
+
+
 def show_table(console, title: str, header: list[str], rows: list[list[object]]) -> None:
     """Print a benchmark table to the terminal (rich)."""
     from rich.table import Table

@@ -1,0 +1,124 @@
+"""Point3 landmarks of the pose graph: declared, held back until observable, then in iSAM2 (SPEC 6.8).
+
+A landmark ``L(j)`` enters the solver only once it is observable: a prior on its position, or camera-frame
+position measurements from two keyframes. Until then its observations wait here, so an underdetermined
+landmark never reaches iSAM2 (no IndeterminantLinearSystemException). A landmark whose factors are all
+removed leaves the solver (iSAM2 drops unused variables) and waits to be observable again.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from gtsam.symbol_shorthand import L
+
+from graph.errors import SolverError
+from graph.factors import LANDMARK, FactorRecord
+
+log = logging.getLogger(__name__)
+
+
+class Landmarks:
+    """The landmark half of ``PoseGraph`` (a mixin: it uses the graph's ``_update``, ``pose`` and records)."""
+
+    def add_landmark(self, j: int, position: np.ndarray | None = None, sigma_m: float = 1.0) -> bool:
+        """Declare landmark ``j``; with a world ``position``, a prior (sigma ``sigma_m``) that makes it observable.
+
+        Returns whether the landmark is in the solver now.
+        """
+        if position is None:
+            if j not in self._landmarks:
+                self._pending.setdefault(j, [])
+            return j in self._landmarks
+        prior = FactorRecord(j, -1, np.array(position, float).reshape(3), float(sigma_m), 0.0, kind=LANDMARK)
+        if j in self._landmarks:
+            self._update([prior])
+        else:
+            self._pending.setdefault(j, [])
+            self._insert_landmark(j, prior)
+        return True
+
+    def add_landmark_observation(self, j: int, k: int, p_cam: np.ndarray, sigma_m: float,
+                                 huber_k: float | None = None) -> int | None:
+        """Landmark ``j`` seen at ``p_cam`` (metres, keyframe ``k``'s camera frame) with isotropic ``sigma_m``.
+
+        Returns the factor index, or None while the landmark waits to be observable: its observations are
+        held back until two keyframes saw it (or it has a prior), then inserted with it in one update.
+        """
+        return self.add_landmark_observations(k, [(j, p_cam)], sigma_m, huber_k)[0]
+
+    def add_landmark_observations(self, k: int, observations: list[tuple[int, np.ndarray]], sigma_m: float,
+                                  huber_k: float | None = None) -> list[int | None]:
+        """Several landmarks seen from keyframe ``k`` (``(j, p_cam)`` pairs), in one iSAM2 update.
+
+        Landmarks that become observable enter with their held-back observations; the factor index of each
+        observation, or None where its landmark still waits.
+        """
+        if not 0 <= k < self.num_keyframes:
+            raise ValueError(f"keyframe {k} is not in the graph")
+        records = []
+        for j, p_cam in observations:
+            if j not in self._landmarks and j not in self._pending:
+                raise ValueError(f"landmark {j} was not added")
+            p = np.array(p_cam, float).reshape(3)
+            if not np.all(np.isfinite(p)) or np.linalg.norm(p) < 1e-3:
+                raise ValueError(f"unusable landmark measurement {p}")
+            records.append(FactorRecord(k, j, p, float(sigma_m), 0.0, huber_k, LANDMARK))
+        factors, landmarks, waiting, first = [], [], {}, 0
+        for r in records:
+            if r.b in self._landmarks:
+                factors.append(r)
+            else:
+                self._pending[r.b].append(r)
+        for j in {r.b for r in records if r.b not in self._landmarks}:
+            if len({r.a for r in self._pending[j]}) >= 2:
+                waiting[j] = self._pending.pop(j)
+                landmarks.append((j, self._guess(waiting[j])))
+                factors += waiting[j]
+        if factors:
+            try:
+                first = int(self._update(factors, landmarks=landmarks).getNewFactorsIndices()[0])
+            except SolverError:
+                self._pending.update(waiting)
+                raise
+        index = {id(f): first + i for i, f in enumerate(factors)}
+        return [index.get(id(r)) for r in records]
+
+    def _guess(self, observations: list[FactorRecord]) -> np.ndarray:
+        """A landmark's initial position: the mean of its observations placed with the current pose estimates."""
+        poses = [self.pose(r.a) for r in observations]
+        return np.mean([T[:3, :3] @ r.measurement + T[:3, 3] for T, r in zip(poses, observations)], axis=0)
+
+    def _insert_landmark(self, j: int, prior: FactorRecord) -> None:
+        """Put a landmark with a prior into iSAM2, with any observations held back for it."""
+        observations = self._pending.pop(j)
+        try:
+            self._update([prior] + observations, landmarks=[(j, prior.measurement)])
+        except SolverError:
+            self._pending[j] = observations
+            raise
+
+    @property
+    def num_landmarks(self) -> int:
+        """Landmarks in the solver (declared ones still waiting to be observable are not counted)."""
+        return len(self._landmarks)
+
+    def landmark(self, j: int) -> np.ndarray:
+        """Current estimate of landmark ``j`` (world position)."""
+        return np.asarray(self.isam.calculateEstimatePoint3(L(j)))
+
+    def landmarks(self) -> dict[int, np.ndarray]:
+        """All landmark estimates by id, from the estimate cached until the next update."""
+        estimate = self._current()
+        return {j: np.asarray(estimate.atPoint3(L(j))) for j in self._landmarks}
+
+    def _drop_unconstrained(self, removed: list[int]) -> None:
+        """Landmarks left without factors: iSAM2 removed their variables, so they wait to be observable again."""
+        touched = {f.a if f.b < 0 else f.b for f in (self.factors[i] for i in removed) if f.kind == LANDMARK}
+        for j in touched & self._landmarks.keys():
+            if not any(f.kind == LANDMARK and (f.a if f.b < 0 else f.b) == j and i not in self._removed
+                       for i, f in enumerate(self.factors)):
+                del self._landmarks[j]
+                self._pending[j] = []
+                log.info("landmark %d lost its last factor: out of the solver until observable again", j)
