@@ -107,7 +107,7 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
         from rl.evaluate import evaluate
         from rl.policy import NoLoopPolicy, OnnxPolicy, OraclePolicy, RandomPolicy
 
-        files = policies or sorted(POLICY_DIR.glob("*.onnx"))
+        files = policies or sorted(POLICY_DIR.glob("config*.onnx"))
         if not files:
             raise user_error(f"no policy files given and none in {POLICY_DIR}")
         results: dict[str, dict] = {}

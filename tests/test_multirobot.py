@@ -23,9 +23,10 @@ ROBOTS = {  # robot -> (dataset, frames): different seeds and lengths, small ima
 }
 
 
-def _objslam(*args: str, **kw) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "service", *args], env={**os.environ, "PYTHONUNBUFFERED": "1"},
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw)
+def _objslam(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "service", *args],
+                            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
 def _get(session: zenoh.Session, key: str, timeout: float = 5.0) -> dict | None:
@@ -45,6 +46,17 @@ def _wait(predicate, what: str, timeout: float = 60.0):
     raise AssertionError(f"timed out waiting for {what}")
 
 
+def _finished_status(session: zenoh.Session, robot: str, frames: int, timeout: float = 240.0) -> dict:
+    """The robot's status once every frame it was sent is processed, rejected or dropped."""
+    end, status = time.monotonic() + timeout, None
+    while time.monotonic() < end:
+        status = _get(session, f"objslam/{robot}/status", timeout=2.0) or status
+        if status and status["frames_processed"] + status["frames_rejected_total"] + status["frames_dropped"] >= frames:
+            return status
+        time.sleep(0.2)
+    raise AssertionError(f"robot {robot} did not finish its {frames} frames; last status: {status}")
+
+
 def _stop(proc: subprocess.Popen) -> str:
     proc.send_signal(signal.SIGTERM)
     try:
@@ -57,7 +69,10 @@ def _stop(proc: subprocess.Popen) -> str:
 def test_two_robots_on_one_router_keep_separate_maps_and_status(router):
     session, endpoint = router
     client = ["--mode", "client", "--connect", endpoint]
-    serves = {r: _objslam("serve", "--robot", r, *client, "--lc-source", "off") for r in ROBOTS}
+    # a queue large enough for the whole replay: this test is about isolation, not about keeping up
+    serves = {r: _objslam("serve", "--robot", r, *client, "--lc-source", "off",
+                          env={"OBJSLAM_INGEST__QUEUE_SIZE": "512"})
+              for r in ROBOTS}
     try:
         for r in ROBOTS:
             _wait(lambda r=r: _get(session, f"objslam/{r}/status", timeout=1.0), f"robot {r} to serve")
@@ -69,9 +84,7 @@ def test_two_robots_on_one_router_keep_separate_maps_and_status(router):
 
         statuses = {}
         for r, (_, frames) in ROBOTS.items():
-            statuses[r] = _wait(lambda r=r, n=frames: (s := _get(session, f"objslam/{r}/status"))
-                                and s["frames_processed"] + s["frames_rejected_total"] >= n and s,
-                                f"robot {r} to process its frames")
+            statuses[r] = _finished_status(session, r, frames)
         trajectories = {}
         for r, (spec, frames) in ROBOTS.items():
             status = statuses[r]
