@@ -85,7 +85,7 @@ class LoopClosureGrid(gym.Env):
             raise ValueError(f"action {action} outside {self.action_space}")
         due = self.loop_due()
         loop = int(self._loop_index[self.cell]) - 1
-        correct = loop + 1 if due else 0
+        correct = self.due_action()
         reward = (CORRECT_LOOP if due else CORRECT_NONE) if action == correct else WRONG
         self.missed = self.missed + 1 if due and action != correct else (0 if due else self.missed)
         self.false_streak = self.false_streak + 1 if (action != 0 and not due) else 0
@@ -112,6 +112,10 @@ class LoopClosureGrid(gym.Env):
             return False
         first = self.first_visit[self.cell]
         return bool(0 <= first < self.t - self.rules.exclude_last)
+
+    def due_action(self) -> int:
+        """The correct action at the current cell: its location's action when a loop closure is due, else 0."""
+        return int(self._loop_index[self.cell]) if self.loop_due() else 0
 
     def valid_moves(self, cell: tuple[int, int] | None = None) -> list[tuple[int, int]]:
         """(heading, cells) moves from ``cell`` that stay on the grid and cross no wall."""

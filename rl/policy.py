@@ -94,4 +94,4 @@ class OraclePolicy:
         pass
 
     def act(self, obs: np.ndarray, envs: Sequence[LoopClosureGrid]) -> np.ndarray:
-        return np.array([int(env.grid.loop_index()[env.cell]) if env.loop_due() else 0 for env in envs])
+        return np.array([env.due_action() for env in envs])

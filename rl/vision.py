@@ -97,20 +97,23 @@ class Renderer:
             image[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2] = AGENT
         return image
 
-    def full_view(self, cell: tuple[int, int], heading: int, px: int | None = None) -> np.ndarray:
-        """A human view of the whole grid: loop-closure locations numbered, the cone lit, the agent's heading."""
+    def full_view(self, cell: tuple[int, int] | None = None, heading: int = 0, px: int | None = None) -> np.ndarray:
+        """A human view of the whole grid: loop-closure locations numbered and, given the agent's cell, its lit
+        cone and heading."""
         rows, cols = self.grid.shape
         px = px or max(4, min(40, 840 // max(rows, cols)))
         base = self.colours.astype(np.float32)
         for r, c in self.grid.loops:
             base[r, c] = LOOP_COLOUR
-        seen = self.mask(cell, heading)
-        base[~seen & ~self.grid.walls] *= 0.45
-        base[cell] = AGENT
+        if cell is not None:
+            base[~self.mask(cell, heading) & ~self.grid.walls] *= 0.45
+            base[cell] = AGENT
         image = np.ascontiguousarray(np.repeat(np.repeat(base.astype(np.uint8), px, 0), px, 1))
-        centre = (int((cell[1] + 0.5) * px), int((cell[0] + 0.5) * px))
-        tip = (centre[0] + int(HEADINGS[heading][1] * px * 0.45), centre[1] + int(HEADINGS[heading][0] * px * 0.45))
-        cv2.arrowedLine(image, centre, tip, (255, 255, 0), max(1, px // 8), tipLength=0.5)
+        if cell is not None:
+            centre = (int((cell[1] + 0.5) * px), int((cell[0] + 0.5) * px))
+            tip = (centre[0] + int(HEADINGS[heading][1] * px * 0.45),
+                   centre[1] + int(HEADINGS[heading][0] * px * 0.45))
+            cv2.arrowedLine(image, centre, tip, (255, 255, 0), max(1, px // 8), tipLength=0.5)
         if px >= 12:
             for l, (r, c) in enumerate(self.grid.loops):
                 cv2.putText(image, str(l + 1), (c * px + 2, r * px + px - 3), cv2.FONT_HERSHEY_SIMPLEX,

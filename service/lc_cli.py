@@ -29,7 +29,9 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
         = "config1",
         from_map: Annotated[Path | None, typer.Option(
             "--from-map", help="a run output or state directory: train for its grid world (grid.json)")] = None,
-        cell_m: Annotated[float, typer.Option("--cell", help="--from-map: grid cell size in metres")] = 0.25,
+        cell_m: Annotated[float | None, typer.Option(
+            "--cell", help="--from-map: rebuild the grid with this cell size in metres (default: its grid.json)")]
+        = None,
         steps: Annotated[int, typer.Option("--steps", help="environment steps over all actors")] = 300_000,
         batch: Annotated[BatchMode, typer.Option("--batch", help="entropy-based (eq. 3.20) or fixed")]
         = BatchMode.entropy,
@@ -145,14 +147,14 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
                    f"(target >= 95 % / >= 80 %; dissertation 80 % / 67 %).", path=write)
 
 
-def _map_of_dir(path: Path, cell_m: float):
+def _map_of_dir(path: Path, cell_m: float | None):
     """The grid world of a run output or state directory: its grid.json, else built from its map."""
     from rl.gridmap import GridMap
     from service.lc_grid import GRID_FILE, load_map_dir, write_grid
 
-    if (path / GRID_FILE).is_file() and cell_m == 0.25:
+    if (path / GRID_FILE).is_file() and cell_m is None:
         return GridMap.load(path / GRID_FILE)
-    grid = load_map_dir(path, cell_m, 5.0)
+    grid = load_map_dir(path, cell_m or 0.25, 5.0)
     write_grid(path, grid)
     return grid
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from rl.gridmap import GridMap, MapError
 from rl.map_to_grid import build_grid
-from rl.vision import LOOP_COLOUR, renderer_for
+from rl.vision import renderer_for
 from service.sources.base import Trajectory
 
 log = logging.getLogger(__name__)
@@ -33,17 +33,7 @@ def grid_for_map(name: str, trajectory: Trajectory, cloud: np.ndarray, objects: 
 def write_grid(out: Path, grid: GridMap) -> None:
     """``grid.json`` and a picture of it, ``grid.png`` (walls white, objects coloured, locations numbered)."""
     grid.save(out / GRID_FILE)
-    renderer = renderer_for(grid)
-    image = renderer.colours.copy()
-    for r, c in grid.loops:
-        image[r, c] = LOOP_COLOUR
-    px = max(4, min(40, 840 // max(grid.shape)))
-    big = np.ascontiguousarray(np.repeat(np.repeat(image, px, 0), px, 1))
-    if px >= 12:
-        for l, (r, c) in enumerate(grid.loops):
-            cv2.putText(big, str(l + 1), (c * px + 2, r * px + px - 3), cv2.FONT_HERSHEY_SIMPLEX, px / 40,
-                        (0, 0, 0), 1, cv2.LINE_AA)
-    cv2.imwrite(str(out / GRID_PNG), cv2.cvtColor(big, cv2.COLOR_RGB2BGR))
+    cv2.imwrite(str(out / GRID_PNG), cv2.cvtColor(renderer_for(grid).full_view(), cv2.COLOR_RGB2BGR))
 
 
 def try_write_grid(out: Path, name: str, trajectory: Trajectory, cloud: np.ndarray, objects: list[dict]) -> bool:
