@@ -154,7 +154,7 @@ def _map_of_dir(path: Path, cell_m: float | None):
 
     if (path / GRID_FILE).is_file() and cell_m is None:
         return GridMap.load(path / GRID_FILE)
-    grid = load_map_dir(path, cell_m or 0.25, 5.0)
+    grid = load_map_dir(path, **({"cell_m": cell_m} if cell_m is not None else {}))
     write_grid(path, grid)
     return grid
 

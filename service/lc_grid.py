@@ -46,8 +46,8 @@ def try_write_grid(out: Path, name: str, trajectory: Trajectory, cloud: np.ndarr
         return False
 
 
-def load_map_dir(path: Path, cell_m: float, min_gap_s: float) -> GridMap:
-    """The grid world of a run output or state directory (rebuilt with the given cell size)."""
+def load_map_dir(path: Path, **grid_options) -> GridMap:
+    """The grid world of a run output or state directory (``grid_options``: those of ``grid_for_map``)."""
     from service.sources.tum import read_trajectory
 
     missing = [f for f in ("trajectory.tum", CLOUD_FILE, "objects.json") if not (path / f).is_file()]
@@ -56,4 +56,4 @@ def load_map_dir(path: Path, cell_m: float, min_gap_s: float) -> GridMap:
     trajectory = read_trajectory(path / "trajectory.tum")
     cloud = np.load(path / CLOUD_FILE)
     objects = json.loads((path / "objects.json").read_text())
-    return grid_for_map(path.resolve().name, trajectory, cloud, objects, cell_m, min_gap_s)
+    return grid_for_map(path.resolve().name, trajectory, cloud, objects, **grid_options)
