@@ -55,23 +55,32 @@ class Landmarks:
         Landmarks that become observable enter with their held-back observations; the factor index of each
         observation, or None where its landmark still waits.
         """
-        if not 0 <= k < self.num_keyframes:
-            raise ValueError(f"keyframe {k} is not in the graph")
+        return self.add_landmark_measurements([(k, j, p) for j, p in observations], sigma_m, huber_k)
+
+    def add_landmark_measurements(self, items: list[tuple[int, int, np.ndarray]], sigma_m: float | list[float],
+                                  huber_k: float | None = None) -> list[int | None]:
+        """Landmark measurements ``(k, j, p_cam)`` from any keyframes, in one iSAM2 update (see above).
+
+        ``sigma_m``: one sigma for all, or one per measurement.
+        """
+        sigmas = np.broadcast_to(np.asarray(sigma_m, float), (len(items),))
         records = []
-        for j, p_cam in observations:
+        for (k, j, p_cam), sigma in zip(items, sigmas):
+            if not 0 <= k < self.num_keyframes:
+                raise ValueError(f"keyframe {k} is not in the graph")
             if j not in self._landmarks and j not in self._pending:
                 raise ValueError(f"landmark {j} was not added")
             p = np.array(p_cam, float).reshape(3)
             if not np.all(np.isfinite(p)) or np.linalg.norm(p) < 1e-3:
                 raise ValueError(f"unusable landmark measurement {p}")
-            records.append(FactorRecord(k, j, p, float(sigma_m), 0.0, huber_k, LANDMARK))
+            records.append(FactorRecord(k, j, p, float(sigma), 0.0, huber_k, LANDMARK))
         factors, landmarks, waiting, first = [], [], {}, 0
         for r in records:
             if r.b in self._landmarks:
                 factors.append(r)
             else:
                 self._pending[r.b].append(r)
-        for j in {r.b for r in records if r.b not in self._landmarks}:
+        for j in sorted({r.b for r in records if r.b not in self._landmarks}):
             if len({r.a for r in self._pending[j]}) >= 2:
                 waiting[j] = self._pending.pop(j)
                 landmarks.append((j, self._guess(waiting[j])))
@@ -84,6 +93,15 @@ class Landmarks:
                 raise
         index = {id(f): first + i for i, f in enumerate(factors)}
         return [index.get(id(r)) for r in records]
+
+    def withdraw_waiting(self, j: int, k: int, p_cam: np.ndarray) -> bool:
+        """Take back a measurement of landmark ``j`` from keyframe ``k`` that still waits; True if found."""
+        waiting = self._pending.get(j, [])
+        for i, r in enumerate(waiting):
+            if r.a == k and np.array_equal(r.measurement, np.asarray(p_cam, float).reshape(3)):
+                del waiting[i]
+                return True
+        return False
 
     def _guess(self, observations: list[FactorRecord]) -> np.ndarray:
         """A landmark's initial position: the mean of its observations placed with the current pose estimates."""
@@ -98,6 +116,15 @@ class Landmarks:
         except SolverError:
             self._pending[j] = observations
             raise
+
+    def landmarks_in_solver(self) -> set[int]:
+        """Ids of the landmarks that are in iSAM2 now."""
+        return set(self._landmarks)
+
+    def landmark_factor_indices(self, landmarks: set[int]) -> dict[tuple[int, int, bytes], int]:
+        """Factor index of each live measurement of these landmarks, by (landmark, keyframe, measurement bytes)."""
+        return {(f.b, f.a, f.measurement.tobytes()): i for i, f in enumerate(self.factors)
+                if f.kind == LANDMARK and f.b in landmarks and i not in self._removed}
 
     @property
     def num_landmarks(self) -> int:

@@ -183,8 +183,11 @@ def merge_track_runs(features: Sequence[FeatureVector], run: int) -> list[Featur
     mean = s1 / s0[:, None]
     cov = s2 / s0[:, None, None] - mean[:, :, None] * mean[:, None, :]
     first = np.unique(group, return_index=True)[1]
+    sources: list[list[int]] = [[] for _ in range(g)]
+    for k, i in zip(group, order):
+        sources[k].extend(features[i].sources)
     return [FeatureVector(mean[k], cov[k], int(s0[k]), features[order[first[k]]].label,
-                          features[order[first[k]]].track_id) for k in range(g)]
+                          features[order[first[k]]].track_id, tuple(sources[k])) for k in range(g)]
 
 
 def ellipsoid(members: Sequence[FeatureVector], object_id: int, axis_scale: float) -> ObjectEllipsoid:

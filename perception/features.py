@@ -35,6 +35,8 @@ class FeatureVector:
 
     ``cov`` keeps the full 3x3 second moment (its diagonal is the per-axis variance the clustering
     distance uses; the off-diagonal terms orient the object's ellipse); ``n`` is the point count.
+    ``sources`` names the keyframe observations pooled into it (ids of ``ObjectMapper``'s observation
+    store), so the vector can be recomputed exactly when the poses of those keyframes change.
     """
 
     mean: np.ndarray
@@ -42,6 +44,7 @@ class FeatureVector:
     n: int
     label: str
     track_id: int = -1
+    sources: tuple[int, ...] = ()
 
     @property
     def var(self) -> np.ndarray:
@@ -131,6 +134,12 @@ def feature_from_points(points: np.ndarray, label: str, track_id: int = -1) -> F
     return FeatureVector(mean, d.T @ d / len(points), len(points), label, track_id)
 
 
+def transform_feature(f: FeatureVector, T: np.ndarray) -> FeatureVector:
+    """The feature vector of the same points moved by the rigid transform T (mean T m, covariance R C R^T)."""
+    R = T[:3, :3]
+    return FeatureVector(R @ f.mean + T[:3, 3], R @ f.cov @ R.T, f.n, f.label, f.track_id, f.sources)
+
+
 def merge_features(features: Sequence[FeatureVector]) -> FeatureVector:
     """The pooled Gaussian of several feature vectors of one class (moments weighted by point count)."""
     n = np.array([f.n for f in features], float)
@@ -139,4 +148,5 @@ def merge_features(features: Sequence[FeatureVector]) -> FeatureVector:
     mean = w @ means
     d = means - mean
     cov = np.einsum("k,kij->ij", w, np.stack([f.cov for f in features])) + (d.T * w) @ d
-    return FeatureVector(mean, cov, int(n.sum()), features[0].label, features[0].track_id)
+    sources = tuple(i for f in features for i in f.sources)
+    return FeatureVector(mean, cov, int(n.sum()), features[0].label, features[0].track_id, sources)

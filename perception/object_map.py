@@ -2,16 +2,27 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from graph.geometry import inverse
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
-from perception.features import FeatureConfig, backproject_detection, feature_from_points
+from perception.features import (FeatureConfig, FeatureVector, backproject_detection, feature_from_points,
+                                 merge_features, transform_feature)
 from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
 from perception.tracks import Tracker
+
+
+_IDENTITY = np.eye(4)
+BORDER_PX = 4
+"""A box within this many pixels of the image border is cut by it."""
+
+
+def _inside(box, width: int, height: int, margin: float) -> bool:
+    return box[0] >= margin and box[1] >= margin and box[2] <= width - margin and box[3] <= height - margin
 
 
 @dataclass
@@ -19,11 +30,17 @@ class _Keyframe:
     detections: list[Detection]
     depth_m: np.ndarray
     pose: np.ndarray
+    index: int = -1
 
 
 class ObjectMapper:
     """Objects from keyframe detections. ``add_keyframe`` takes colour-registered depth, the colour K and
-    the colour camera's camera-to-world pose; only the previous keyframe's depth is kept."""
+    the colour camera's camera-to-world pose; only the previous keyframe's depth is kept.
+
+    Every observation is also kept in its camera frame with its keyframe (the observation store), and every
+    feature vector names the observations it pools, so ``repose`` recomputes all feature vectors exactly
+    from new keyframe poses and re-clusters (Sec. 2.4.7: after an optimisation moved the poses).
+    """
 
     def __init__(self, npda: NPDAConfig = NPDAConfig(), clustering: ClusterConfig = ClusterConfig(),
                  features: FeatureConfig = FeatureConfig(), tracker: Tracker | None = None):
@@ -32,6 +49,11 @@ class ObjectMapper:
         self.clusterer = Clusterer(clustering)
         self._prev: _Keyframe | None = None
         self.associations = 0
+        self._obs_keyframe: list[int] = []
+        self._obs_local: list[FeatureVector] = []
+        self.last_observations: list[tuple[int, np.ndarray, float]] = []
+        """The latest keyframe's (track id, camera-frame centroid, largest std of its points (m)) per detection
+        with enough depth whose box the image border does not cut (a cut box measures part of the object)."""
 
     def add_keyframe(self, index: int, detections: list[Detection], depth_m: np.ndarray, K: np.ndarray,
                      pose: np.ndarray) -> bool:
@@ -42,23 +64,67 @@ class ObjectMapper:
                               inverse(pose) @ self._prev.pose, self.npda).pairs
         self.associations += len(pairs)
         ids = self.tracker.update(index, [d.label for d in detections], pairs)
-        obs = [feature_from_points(backproject_detection(depth_m, K, pose, d.box, self.features), d.label, t)
-               for d, t in zip(detections, ids)]
+        local = [feature_from_points(backproject_detection(depth_m, K, _IDENTITY, d.box, self.features), d.label, t)
+                 for d, t in zip(detections, ids)]
+        obs = [None if f is None else transform_feature(self._store(index, f), pose) for f in local]
+        h, w = depth_m.shape[:2]
+        self.last_observations = [(t, f.mean, float(np.sqrt(np.linalg.eigvalsh(f.cov)[-1])))
+                                  for f, t, d in zip(local, ids, detections)
+                                  if f is not None and _inside(d.box, w, h, BORDER_PX)]
         self.clusterer.add([self.tracker.observe(t, f) for t, f in zip(ids, obs)] + self.tracker.close_stale(index))
-        self._prev = _Keyframe(detections, depth_m, pose)
+        self._prev = _Keyframe(detections, depth_m, pose, index)
         return self.clusterer.step(obs, [self.tracker.associated(t) for t in ids])
 
+    def _store(self, keyframe: int, local: FeatureVector) -> FeatureVector:
+        """Keep a camera-frame observation; the same vector tagged with its store id."""
+        self._obs_keyframe.append(keyframe)
+        self._obs_local.append(FeatureVector(local.mean, local.cov, local.n, local.label, local.track_id,
+                                             (len(self._obs_local),)))
+        return self._obs_local[-1]
+
+    def repose(self, poses: Mapping[int, np.ndarray] | np.ndarray) -> list[ObjectEllipsoid]:
+        """Recompute every feature vector from new camera-to-world keyframe poses and re-cluster (Sec. 2.4.7).
+
+        ``poses[k]`` is the colour camera's pose of keyframe ``k`` (the index given to ``add_keyframe``).
+        Vectors pooled from several observations are re-pooled from their observations, so the result
+        equals mapping the sequence again with the new poses (tracks and associations stay as they were).
+        """
+        if not self._obs_local:
+            return self.clusterer.objects
+        T = np.stack([poses[k] for k in self._obs_keyframe])
+        R, t = T[:, :3, :3], T[:, :3, 3]
+        means = np.einsum("nij,nj->ni", R, np.stack([f.mean for f in self._obs_local])) + t
+        covs = np.einsum("nij,njk,nlk->nil", R, np.stack([f.cov for f in self._obs_local]), R)
+
+        def world(f: FeatureVector) -> FeatureVector:
+            if not f.sources:  # from a snapshot of a version without the store: left as it was
+                return f
+            parts = [FeatureVector(means[i], covs[i], self._obs_local[i].n, f.label, f.track_id, (i,))
+                     for i in f.sources]
+            return parts[0] if len(parts) == 1 else merge_features(parts)
+
+        self.clusterer.features = [world(f) for f in self.clusterer.features]
+        for track in self.tracker.tracks.values():
+            track.window = [world(f) for f in track.window]
+        if self._prev is not None and self._prev.index >= 0:
+            self._prev.pose = np.asarray(poses[self._prev.index])
+        return self.clusterer.recluster()
+
     def state(self) -> dict:
-        """Plain state: tracker, clusterer, the previous keyframe (detections, depth, pose), counters."""
-        prev = None if self._prev is None else (self._prev.detections, self._prev.depth_m, self._prev.pose)
+        """Plain state: tracker, clusterer, the previous keyframe (detections, depth, pose), counters, store."""
+        prev = None if self._prev is None else (self._prev.detections, self._prev.depth_m, self._prev.pose,
+                                                 self._prev.index)
         return {"tracker": self.tracker.state(), "clusterer": self.clusterer.state(), "prev": prev,
-                "associations": self.associations}
+                "associations": self.associations,
+                "observations": {"keyframe": np.array(self._obs_keyframe, np.int64), "local": self._obs_local}}
 
     def restore(self, state: dict) -> None:
         self.tracker.restore(state["tracker"])
         self.clusterer.restore(state["clusterer"])
         self._prev = None if state["prev"] is None else _Keyframe(*state["prev"])
         self.associations = state["associations"]
+        store = state.get("observations", {"keyframe": [], "local": []})
+        self._obs_keyframe, self._obs_local = [int(k) for k in store["keyframe"]], list(store["local"])
 
     def finish(self) -> list[ObjectEllipsoid]:
         """End of sequence: emit every open track window and re-cluster once more."""
@@ -70,8 +136,10 @@ class ObjectMapper:
         return self.clusterer.objects
 
 
-def object_json(o: ObjectEllipsoid) -> dict:
-    """The ``objects.json`` entry of SPEC section 4."""
+def object_json(o: ObjectEllipsoid, landmark: np.ndarray | None = None) -> dict:
+    """The ``objects.json`` entry of SPEC section 4, plus ``landmark``: the object's iSAM2 landmark estimate
+    (world position) once it is in the graph, else null."""
     return {"id": int(o.id), "label": o.label, "mean": [float(v) for v in o.mean],
             "cov": np.asarray(o.cov, float).tolist(), "axes": np.asarray(o.axes, float).tolist(),
-            "n_observations": int(o.n_observations)}
+            "n_observations": int(o.n_observations),
+            "landmark": None if landmark is None else [float(v) for v in landmark]}

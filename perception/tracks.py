@@ -99,4 +99,4 @@ class Tracker:
         """Pool and clear the track's window."""
         pooled = merge_features(track.window)
         track.window = []
-        return FeatureVector(pooled.mean, pooled.cov, pooled.n, track.label, track.id)
+        return FeatureVector(pooled.mean, pooled.cov, pooled.n, track.label, track.id, pooled.sources)

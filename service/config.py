@@ -102,9 +102,19 @@ class DetectorSettings(BaseModel):
 
 
 class ObjectSettings(BaseModel):
-    """Object association (NPDA), tracks and clustering on keyframes (defaults from `objslam bench association`)."""
+    """Object association (NPDA), tracks and clustering on keyframes (defaults from `objslam bench association`),
+    objects as landmarks of the pose graph, and re-clustering after optimisations (SPEC 6.8)."""
 
     enabled: bool = True
+    landmarks: bool = Field(True, description="stable objects become Point3 landmarks of the iSAM2 graph")
+    landmark_sigma_m: float = Field(0.1, gt=0, description="sigma of an object centroid measurement (m)")
+    landmark_huber_k: float | None = Field(1.345, gt=0, description="Huber kernel of object measurements; null = none")
+    landmark_min_support: int = Field(5, ge=1, description="feature vectors an object needs to become a landmark")
+    landmark_extent_scale: float = Field(1.0, ge=0, description="a measurement's sigma is at least this times "
+                                                                "the largest std of the object's points")
+    repose_m: float = Field(0.01, gt=0, description="re-pose and re-cluster objects once an optimisation has "
+                                                    "moved an observing keyframe this far (m)")
+    repose_deg: float = Field(0.5, gt=0, description="... or turned it this much (degrees)")
 
 
 class GraphSettings(BaseModel):

@@ -46,6 +46,7 @@ class MapSummary:
     object_map_version: int = -1
     loops: list[dict] = field(default_factory=list)
     loops_key: tuple[int, int] = (-1, -1)  # (records, accepted) when ``loops`` was copied
+    objects_key: tuple[int, int] = (-1, -1)  # (object map version, graph update) when ``objects`` was copied
 
 
 class ServiceNode:
@@ -273,17 +274,21 @@ class ServiceNode:
         """
         p, old = self.pipeline, self._summary
         graph = p.graph
-        objects = old.objects if old.object_map_version == p.object_map_version else p.object_list()
+        # landmark estimates move with every graph update; without landmarks only the object map version counts
+        objects_key = (p.object_map_version, graph.updates if graph.num_landmarks else 0)
+        objects = old.objects if old.objects_key == objects_key else p.object_list()
         records = p.loops.records if p.loops is not None else []
         accepted = p.loops.n_accepted if p.loops is not None else 0
         key = (len(records), accepted)
         loops = old.loops if key == old.loops_key else [dict(r) for r in records]
         counts = {"keyframes": graph.num_keyframes, "poses": graph.num_keyframes, "factors": graph.num_factors,
                   "landmarks": graph.num_landmarks, "tracking_lost": p.tracking_lost,
+                  "landmark_measurements": len(p.landmarks.assigned) if p.landmarks is not None else 0,
+                  "object_reposes": p.reposes,
                   "loop_closures": {"accepted": accepted, "rejected": len(records) - accepted},
                   "keyframe_detections_by_class": dict(p.detections_by_class), "objects": len(objects),
                   "objects_by_class": dict(Counter(o["label"] for o in objects))}
-        summary = MapSummary(counts, objects, p.object_map_version, loops, key)
+        summary = MapSummary(counts, objects, p.object_map_version, loops, key, objects_key)
         with self._summary_lock:
             self._summary = summary
 

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel
 
+from graph.object_landmarks import LandmarkConfig, ObjectLandmarks
 from graph.pose_graph import NoiseSettings, PoseGraph
 from perception.frame import CameraModel, Frame
 from perception.frontend import ExternalOdometry, KeyframePolicy, Step, VisualOdometry
@@ -102,6 +103,10 @@ class Pipeline:
         self.detections_by_class: Counter[str] = Counter()
         self.objects = ObjectMapper() if settings.objects.enabled else None
         self.object_map_version = 0
+        self.landmarks = ObjectLandmarks(self.graph, from_settings(LandmarkConfig, settings.objects)) \
+            if settings.objects.enabled and settings.objects.landmarks else None
+        self._object_poses: list[np.ndarray] = []  # per keyframe: the pose its object observations were placed with
+        self.reposes = 0
 
     @property
     def last_timestamp(self) -> float:
@@ -176,6 +181,7 @@ class Pipeline:
             policy = self._policy_candidates(kf)
             self.loops.add_keyframe(KeyframeEntry(kf, frame.timestamp, frame.seq, features), frame.rgb, policy)
             self.timings["loop_closure"] = time.perf_counter() - t0
+        self._repose_objects()
         return FrameRecord(frame.timestamp, frame.seq, kf, True, step.pose, np.eye(4))
 
     def _policy_candidates(self, kf: int) -> list[tuple[int, str, float]]:
@@ -218,22 +224,66 @@ class Pipeline:
         t0 = time.perf_counter()
         camera = frame.camera
         depth = depth_in_color(frame.depth_m(), camera, scale=2)
-        pose = self.graph.pose(kf)
-        if not camera.registered and camera.depth_to_color is not None:
-            pose = pose @ np.linalg.inv(camera.depth_to_color)
-        if self.objects.add_keyframe(kf, self.keyframe_detections[kf], depth, camera.color.matrix(), pose):
-            self.object_map_version += 1
+        body = self.graph.pose(kf)
+        self._object_poses.append(body)
+        reclustered = self.objects.add_keyframe(kf, self.keyframe_detections[kf], depth, camera.color.matrix(),
+                                                body @ self._color_from_body())
+        if self.landmarks is not None:
+            to_body = np.linalg.inv(self._color_from_body())
+            self.landmarks.observe(kf, [(t, to_body[:3, :3] @ p + to_body[:3, 3], extent)
+                                        for t, p, extent in self.objects.last_observations])
+            if reclustered:
+                self.landmarks.sync(self.objects.objects)
+        self.object_map_version += reclustered
         self.timings["objects"] = time.perf_counter() - t0
+
+    def _color_from_body(self) -> np.ndarray:
+        """The colour camera's pose in the keyframe (depth camera) frame: identity when registered."""
+        camera = self._camera
+        if camera is None or camera.registered or camera.depth_to_color is None:
+            return np.eye(4)
+        return np.linalg.inv(camera.depth_to_color)
+
+    def _repose_objects(self) -> None:
+        """Sec. 2.4.7: after an optimisation, recompute the feature vectors from the updated poses and re-cluster.
+
+        Done when some keyframe holding object observations has moved by more than ``repose_m`` or turned
+        by more than ``repose_deg`` since its observations were placed; smaller corrections are below the
+        objects' own noise and re-clustering every keyframe would cost ~50 ms each.
+        """
+        if self.objects is None or not self._object_poses:
+            return
+        n = len(self._object_poses)
+        now, used = self.graph.poses()[:n], np.stack(self._object_poses)
+        moved = np.linalg.norm(now[:, :3, 3] - used[:, :3, 3], axis=1).max()
+        cos = (np.einsum("nij,nij->n", now[:, :3, :3], used[:, :3, :3]) - 1.0) / 2.0
+        turned = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max()
+        cfg = self.settings.objects
+        if moved <= cfg.repose_m and turned <= cfg.repose_deg:
+            return
+        t0 = time.perf_counter()
+        self.objects.repose(now @ self._color_from_body())
+        self._object_poses = list(now)
+        if self.landmarks is not None:
+            self.landmarks.sync(self.objects.objects)
+        self.reposes += 1
+        self.object_map_version += 1
+        self.timings["repose"] = time.perf_counter() - t0
 
     def finish(self) -> None:
         """End of a sequence (``run``): emit the open tracks and re-cluster the objects once more."""
         if self.objects is not None and self.records:
             self.objects.finish()
+            if self.landmarks is not None:
+                self.landmarks.sync(self.objects.objects)
             self.object_map_version += 1
 
     def object_list(self) -> list[dict]:
         """Current objects in the frame of the trajectory (``objects.json`` entries)."""
-        return [object_json(o) for o in self.objects.objects] if self.objects is not None else []
+        if self.objects is None:
+            return []
+        landmarks = self.landmarks.positions() if self.landmarks is not None else {}
+        return [object_json(o, landmarks.get(o.id)) for o in self.objects.objects]
 
     def _get_detector(self):
         if self._detector is None:
@@ -287,6 +337,9 @@ class Pipeline:
             "detections_by_class": dict(self.detections_by_class),
             "objects": None if self.objects is None else self.objects.state(),
             "object_map_version": self.object_map_version,
+            "landmarks": None if self.landmarks is None else self.landmarks.state(),
+            "object_poses": np.array(self._object_poses).reshape(-1, 4, 4),
+            "reposes": self.reposes,
             "loops": None if self.loops is None else self.loops.state(),
         }
 
@@ -311,4 +364,10 @@ class Pipeline:
         if p.objects is not None and state["objects"] is not None:
             p.objects.restore(state["objects"])
         p.object_map_version = state["object_map_version"]
+        if p.landmarks is not None:
+            p.landmarks.graph = p.graph
+            if state.get("landmarks") is not None:
+                p.landmarks.restore(state["landmarks"])
+        p._object_poses = list(state.get("object_poses", p.graph.poses()[:len(p.keyframe_detections)]))
+        p.reposes = state.get("reposes", 0)
         return p

@@ -53,13 +53,14 @@ def windows_found(loops: list[dict], windows: list) -> str:
     return f"{found} / {len(windows)}"
 
 
-def run_one(spec: str, out: Path, loops: dict[str, Any] | None = None) -> dict[str, Any]:
+def run_one(spec: str, out: Path, loops: dict[str, Any] | None = None,
+            objects: dict[str, Any] | None = None) -> dict[str, Any]:
     """One end-to-end run without provided odometry; returns the figures of both tables.
 
-    ``loops`` overrides loop-closure settings (default: the appearance source).
+    ``loops`` overrides loop-closure settings (default: the appearance source), ``objects`` object settings.
     """
     dataset = WithoutOdometry(open_dataset(spec))
-    settings = load_settings(None, {"loops": loops or {"source": "appearance"}})
+    settings = load_settings(None, {"loops": loops or {"source": "appearance"}, "objects": objects or {}})
     summary = run_dataset(dataset, out, settings, progress=False)
     loops = json.loads((out / "loops.json").read_text())
     judged = [dict(r, true=is_true_loop(dataset, r["match_frame"], r["query_frame"]),

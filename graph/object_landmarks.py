@@ -1,0 +1,142 @@
+"""Objects as Point3 landmarks of the pose graph (SPEC 6.8, Sec. 2.4.7): which measurement is whose.
+
+Each stable object (a cluster pooling at least ``landmark_min_support`` feature vectors) is the landmark
+``L(object id)``. Every keyframe observation of a track (the centroid of its depth points in the keyframe's
+pose frame) measures the landmark of the object that holds the track. Measurements of tracks that belong to
+no stable object yet are kept, and enter the graph once a re-clustering puts their track into one. When a
+re-clustering moves a track to another object (clusters merged or split) or drops its object, its
+measurements are retracted (``removeFactorIndices``, or withdrawn while their landmark still waits to be
+observable) and re-added under the new landmark. The graph itself holds a landmark back until it is
+observable, so no IndeterminantLinearSystemException reaches the service.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from graph.errors import SolverError
+from graph.pose_graph import PoseGraph
+
+log = logging.getLogger(__name__)
+
+Key = tuple[int, int]  # (keyframe, track id)
+
+
+@dataclass(frozen=True)
+class LandmarkConfig:
+    """How objects enter the graph (``objects`` section of the configuration)."""
+
+    landmark_sigma_m: float = 0.1
+    """Isotropic sigma of a centroid measurement: the visible surface's centroid moves with the viewpoint."""
+    landmark_huber_k: float | None = 1.345
+    """Huber kernel on each measurement (None = Gaussian): a wrong association must not bend the trajectory."""
+    landmark_min_support: int = 5
+    """An object becomes a landmark once its cluster pools this many feature vectors."""
+    landmark_extent_scale: float = 1.0
+    """A measurement's sigma is at least this times the largest std of its points: the visible surface's
+    centroid of a large object moves with the viewpoint by about its extent."""
+
+
+class ObjectLandmarks:
+    """Keeps the graph's object landmarks in step with the clustering."""
+
+    def __init__(self, graph: PoseGraph, config: LandmarkConfig = LandmarkConfig()):
+        self.graph, self.config = graph, config
+        self.measurements: dict[Key, np.ndarray] = {}  # (x, y, z, sigma)
+        self.assigned: dict[Key, tuple[int, int | None]] = {}  # -> (landmark, factor index; None while waiting)
+        self.track_landmark: dict[int, int] = {}
+        self.declared: set[int] = set()
+        self.failures = 0
+
+    def observe(self, k: int, observations: Iterable[tuple[int, np.ndarray, float]]) -> int:
+        """Keyframe ``k``'s measurements ``(track id, p, extent)``: the centroid ``p`` in the keyframe's pose
+        frame and the largest std of the points (m). Those of mapped tracks go into the graph now.
+
+        Returns how many entered the graph (or wait there for their landmark to become observable).
+        """
+        items = []
+        for track, p, extent in observations:
+            p = np.asarray(p, float).reshape(3)
+            if not np.all(np.isfinite(p)) or np.linalg.norm(p) < 1e-3 or not np.isfinite(extent):
+                continue
+            sigma = max(self.config.landmark_sigma_m, self.config.landmark_extent_scale * float(extent))
+            self.measurements[(k, track)] = np.r_[p, sigma]
+            if track in self.track_landmark:
+                items.append(((k, track), self.track_landmark[track]))
+        return self._add(items)
+
+    def sync(self, objects: Sequence[Any]) -> tuple[int, int]:
+        """Follow a re-clustering (objects with ``id``, ``tracks``, ``n_observations``): retract measurements whose track changed object, add the newly mapped ones.
+
+        Returns (added, retracted) measurement counts.
+        """
+        mapping = {t: o.id for o in objects if o.n_observations >= self.config.landmark_min_support
+                   for t in o.tracks}
+        stale = [key for key, (j, _) in self.assigned.items() if mapping.get(key[1]) != j]
+        self._retract(stale)
+        self.track_landmark = mapping
+        missing = [(key, mapping[key[1]]) for key in self.measurements
+                   if key[1] in mapping and key not in self.assigned]
+        return self._add(missing), len(stale)
+
+    def positions(self) -> dict[int, np.ndarray]:
+        """Landmark estimates (world) of the objects that are in the solver, by object id."""
+        return self.graph.landmarks()
+
+    def _add(self, items: list[tuple[Key, int]]) -> int:
+        if not items:
+            return 0
+        for j in {j for _, j in items} - self.declared:
+            self.graph.add_landmark(j)
+            self.declared.add(j)
+        waiting = {j for _, j in items if j not in self.graph.landmarks_in_solver()}
+        try:
+            m = [self.measurements[key] for key, _ in items]
+            indices = self.graph.add_landmark_measurements(
+                [(k, j, x[:3]) for ((k, _), j), x in zip(items, m)], [x[3] for x in m], self.config.landmark_huber_k)
+        except SolverError as exc:
+            self.failures += 1
+            log.error("object landmark measurements rejected by the solver (%d items): %s", len(items), exc)
+            return 0
+        for (key, j), i in zip(items, indices):
+            self.assigned[key] = (j, i)
+        self._resolve(waiting & self.graph.landmarks_in_solver())
+        return len(items)
+
+    def _resolve(self, entered: set[int]) -> None:
+        """Factor indices of held-back measurements whose landmark has just entered the solver."""
+        if not entered:
+            return
+        found = self.graph.landmark_factor_indices(entered)
+        for key, (j, i) in list(self.assigned.items()):
+            if i is None and j in entered:
+                self.assigned[key] = (j, found.get((j, key[0], self.measurements[key][:3].tobytes())))
+
+    def _retract(self, keys: list[Key]) -> None:
+        indices = []
+        for key in keys:
+            j, i = self.assigned.pop(key)
+            if i is None:
+                self.graph.withdraw_waiting(j, key[0], self.measurements[key][:3])
+            else:
+                indices.append(i)
+        if indices:
+            try:
+                self.graph.remove_factors(indices)
+            except SolverError as exc:
+                self.failures += 1
+                log.error("retracting %d object landmark measurements failed: %s", len(indices), exc)
+
+    def state(self) -> dict:
+        return {"measurements": self.measurements, "assigned": self.assigned, "track_landmark": self.track_landmark,
+                "declared": sorted(self.declared), "failures": self.failures}
+
+    def restore(self, state: dict) -> None:
+        self.measurements, self.assigned = state["measurements"], state["assigned"]
+        self.track_landmark, self.declared = state["track_landmark"], set(state["declared"])
+        self.failures = state["failures"]

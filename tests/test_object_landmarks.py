@@ -1,0 +1,155 @@
+"""Objects in the graph (SPEC 6.8): re-posing feature vectors, object landmarks through merges and splits,
+and the pipeline keeping both in step with the optimisation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from graph.object_landmarks import LandmarkConfig, ObjectLandmarks
+from graph.pose_graph import PoseGraph
+from perception.clustering import ObjectEllipsoid
+from perception.features import transform_feature
+from perception.object_map import ObjectMapper
+from service.bench.association import load_scene
+from service.config import load_settings
+from service.pipeline import Pipeline
+from service.sources import open_dataset
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return load_scene(seed=2, frames=150)
+
+
+def _map(scene, poses) -> ObjectMapper:
+    mapper = ObjectMapper()
+    for j in range(0, len(poses), 2):
+        mapper.add_keyframe(j, scene.dets[j], scene.depth_m(j), scene.K, poses[j])
+    return mapper
+
+
+def _rigid(rotvec, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = t
+    return T
+
+
+def test_repose_equals_mapping_again_with_the_new_poses(scene):
+    """A rigid change of every pose keeps the relative poses, so NPDA and tracks are the same: re-posing must
+    give exactly the feature vectors and objects of mapping the sequence again with the moved poses."""
+    G = _rigid([0.1, -0.3, 0.7], [1.0, -2.0, 0.3])
+    mapper = _map(scene, scene.poses)
+    assert len(mapper.clusterer.features) > 50 and mapper.objects
+    objects = mapper.repose({j: G @ T for j, T in enumerate(scene.poses)})
+    again = _map(scene, G @ scene.poses)
+    again.clusterer.recluster()
+    got, want = mapper.clusterer.features, again.clusterer.features
+    assert len(got) == len(want)
+    for f, g in zip(got, want):
+        assert f.sources == g.sources and f.track_id == g.track_id
+        np.testing.assert_allclose(f.mean, g.mean, atol=1e-9)
+        np.testing.assert_allclose(f.cov, g.cov, atol=1e-9)
+    assert [(o.label, o.tracks) for o in objects] == [(o.label, o.tracks) for o in again.objects]
+    for o, p in zip(objects, again.objects):
+        np.testing.assert_allclose(o.mean, p.mean, atol=1e-9)
+
+
+def test_repose_follows_a_pose_correction_of_part_of_the_sequence(scene):
+    """Only the second half's poses move (as after a loop closure): those observations move with them."""
+    mapper = _map(scene, scene.poses)
+    shift = _rigid([0.0, 0.0, 0.05], [0.2, 0.0, 0.0])
+    moved = {j: (shift @ T if j >= 75 else T) for j, T in enumerate(scene.poses)}
+    mapper.repose(moved)
+    for f in mapper.clusterer.features:
+        parts = [transform_feature(mapper._obs_local[i], moved[mapper._obs_keyframe[i]]) for i in f.sources]
+        np.testing.assert_allclose(f.mean, np.average([p.mean for p in parts], axis=0, weights=[p.n for p in parts]),
+                                   atol=1e-9)
+
+
+def _chain(n: int) -> tuple[PoseGraph, list[np.ndarray]]:
+    g = PoseGraph()
+    poses = [_rigid([0.0, 0.02 * k, 0.0], [0.1 * k, 0.0, 0.0]) for k in range(n)]
+    g.add_first(poses[0])
+    for a, b in zip(poses, poses[1:]):
+        g.add_keyframe(np.linalg.inv(a) @ b)
+    return g, poses
+
+
+def _seen(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    Ti = np.linalg.inv(T)
+    return Ti[:3, :3] @ p + Ti[:3, 3]
+
+
+def _obj(oid: int, tracks: set[int], n: int = 6) -> ObjectEllipsoid:
+    return ObjectEllipsoid(oid, "chair", np.zeros(3), np.eye(3), np.eye(3), n, frozenset(tracks))
+
+
+def test_landmarks_follow_splits_merges_and_dropped_objects():
+    g, poses = _chain(8)
+    a, b = np.array([0.5, 0.2, 2.0]), np.array([-0.4, 0.1, 2.5])
+    lm = ObjectLandmarks(g, LandmarkConfig(landmark_sigma_m=0.01, landmark_huber_k=None, landmark_min_support=5))
+    for k in range(4):  # tracks 1 and 2 see point a, track 3 sees point b
+        lm.observe(k, [(1, _seen(poses[k], a), 0.0), (2, _seen(poses[k], a), 0.0), (3, _seen(poses[k], b), 0.0)])
+    assert g.num_landmarks == 0 and not lm.assigned  # no stable object yet: measurements only kept
+    assert lm.sync([_obj(1, {1, 2}), _obj(2, {3}, n=4)]) == (8, 0)  # object 2 is below the support threshold
+    assert g.landmarks_in_solver() == {1}
+    np.testing.assert_allclose(g.landmark(1), a, atol=1e-6)
+    lm.observe(4, [(1, _seen(poses[4], a), 0.0), (3, _seen(poses[4], b), 0.0)])  # mapped track: in at once
+    assert len(lm.assigned) == 9
+    factors = g.num_factors
+    assert lm.sync([_obj(1, {1}), _obj(5, {2}), _obj(2, {3})]) == (4 + 5, 4)  # split: track 2 moves to object 5
+    assert g.landmarks_in_solver() == {1, 2, 5} and g.num_factors == factors - 4 + 4 + 5
+    for j, p in ((1, a), (5, a), (2, b)):
+        np.testing.assert_allclose(g.landmark(j), p, atol=1e-6)
+    live = {i for _, i in lm.assigned.values()}
+    assert None not in live and not live & g._removed
+    assert all(g.factors[i].b == j for j, i in lm.assigned.values())
+    lm.sync([_obj(1, {1, 2, 3})])  # everything merged into one object (an over-merge); then it is dropped
+    assert g.landmarks_in_solver() == {1} and len(lm.assigned) == 14
+    lm.sync([])
+    assert g.num_landmarks == 0 and not lm.assigned
+    np.testing.assert_allclose(g.poses(), np.stack(poses), atol=1e-6)
+
+
+def test_a_measurement_still_waiting_is_withdrawn_when_its_track_moves():
+    g, poses = _chain(4)
+    p = np.array([0.0, 0.0, 2.0])
+    lm = ObjectLandmarks(g, LandmarkConfig(landmark_min_support=1))
+    lm.observe(0, [(7, _seen(poses[0], p), 0.05)])
+    lm.sync([_obj(3, {7})])
+    assert lm.assigned == {(0, 7): (3, None)} and g.num_landmarks == 0  # one keyframe: not observable yet
+    lm.sync([_obj(4, {7})])
+    assert g._pending[3] == [] and lm.assigned == {(0, 7): (4, None)} and len(g._pending[4]) == 1
+    lm.observe(2, [(7, _seen(poses[2], p), 0.05)])
+    assert g.landmarks_in_solver() == {4} and all(i is not None for _, i in lm.assigned.values())
+    # sigma: at least the configured floor, at least the points' extent
+    assert [g.factors[i].sigma_m for _, i in sorted(lm.assigned.values())] == [0.1, 0.1]
+
+
+def test_the_pipeline_puts_objects_in_the_graph_and_re_clusters_after_loop_closures():
+    ds = open_dataset("synthetic:room?seed=0&frames=300")
+    p = Pipeline(load_settings(None, {"loops": {"source": "appearance"}}))
+    for i in range(len(ds)):
+        p.process(ds.frame(i))
+    assert p.loops.n_accepted > 0 and p.reposes > 0
+    objects = p.object_list()
+    with_landmark = [o for o in objects if o["landmark"] is not None]
+    assert len(with_landmark) >= 8 and p.graph.num_landmarks == len(with_landmark)
+    for o in with_landmark:  # the landmark (uncut views' centroids) lies within 2 std of its object's centre
+        d = np.subtract(o["landmark"], o["mean"])
+        assert d @ np.linalg.solve(np.asarray(o["cov"]) + 1e-4 * np.eye(3), d) <= 4.0, o
+    # the feature vectors were last placed with poses within the re-pose thresholds of the current estimate
+    # (translation, plus the rotation threshold's sweep at the far side of the 6 m room)
+    bound = p.settings.objects.repose_m + 6.0 * np.radians(p.settings.objects.repose_deg)
+    poses = p.graph.poses()
+    mapper = p.objects
+    worst = max(np.linalg.norm(f.mean - np.average(
+        [transform_feature(mapper._obs_local[i], poses[mapper._obs_keyframe[i]]).mean for i in f.sources], axis=0,
+        weights=[mapper._obs_local[i].n for i in f.sources])) for f in mapper.clusterer.features)
+    assert worst <= bound
+    # every landmark measurement the bookkeeping holds is a live factor of the landmark it names
+    assert all(i is not None and i not in p.graph._removed and p.graph.factors[i].b == j
+               for j, i in p.landmarks.assigned.values() if j in p.graph.landmarks_in_solver())
