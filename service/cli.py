@@ -248,6 +248,14 @@ def bench_loops(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
 SeedsOpt = Annotated[str, typer.Option("--seeds", help="synthetic seeds, comma separated")]
 
 
+@bench_app.command("landmarks")
+def bench_landmarks(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
+    """Objects in the graph: ATE with and without object landmarks and loop closures, landmark errors."""
+    from service.bench.landmarks import run_landmarks_bench
+
+    run_landmarks_bench(console, dataset, write)
+
+
 @bench_app.command("policy-loops")
 def bench_policy_loops(dataset: DatasetsOpt = None,
                        steps: Annotated[int, typer.Option("--steps", help="policy training steps per map")] = 40_000,

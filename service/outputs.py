@@ -78,7 +78,8 @@ def write_outputs(out: Path, trajectory: Trajectory, odometry: Trajectory, summa
 def _error_dict(err: TrajectoryError) -> dict[str, float]:
     return {"pairs": err.pairs, "ate_rmse_m": err.ate_rmse_m, "ate_mean_m": err.ate_mean_m,
             "ate_median_m": err.ate_median_m, "ate_max_m": err.ate_max_m,
-            "rpe_trans_rmse_m": err.rpe_trans_rmse_m, "rpe_rot_rmse_deg": err.rpe_rot_rmse_deg}
+            "rpe_trans_rmse_m": err.rpe_trans_rmse_m, "rpe_rot_rmse_deg": err.rpe_rot_rmse_deg,
+            "alignment": np.asarray(err.alignment, float).tolist()}
 
 
 def report_markdown(summary: dict[str, Any]) -> str:
