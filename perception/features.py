@@ -27,6 +27,10 @@ class FeatureConfig:
     """A jump larger than this between sorted box depths separates the object from its background."""
     max_points: int = 400
     """Back-projected points kept per detection (deterministic stride), so every view weighs alike."""
+    amodal: float | None = float(np.sqrt(3.0))
+    """Amodal completion of a view (``complete_amodal``): the object's centre lies this many horizontal
+    standard deviations behind its near side (sqrt(3): half the width of a uniform extent, as for a box seen
+    face on); None uses the visible points as they are. `objslam bench objects` measures both."""
 
 
 @dataclass(frozen=True)
@@ -87,6 +91,10 @@ def dominant_depth_mask(depths: np.ndarray, anchor: float, gap_m: float) -> np.n
 
 def object_pixels(depth_m: np.ndarray, box: Box, config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
     """The box's valid pixels in the dominant depth segment anchored at the central median (SPEC 6.5)."""
+    return _segment(depth_m, box, config)
+
+
+def _segment(depth_m: np.ndarray, box: Box, config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
     rows, cols = box_pixels(depth_m, box)
     if len(rows) == 0:
         return rows, cols
@@ -94,6 +102,48 @@ def object_pixels(depth_m: np.ndarray, box: Box, config: FeatureConfig) -> tuple
     anchor = float(np.median(depth_m[cr, cc])) if len(cr) else float(np.median(depth_m[rows, cols]))
     keep = dominant_depth_mask(depth_m[rows, cols], anchor, config.gap_m)
     return rows[keep], cols[keep]
+
+
+def room_behind(depth_m: np.ndarray, box: Box, front: float, ring: float = 0.15) -> float:
+    """Free depth behind an object whose near side is at depth ``front``: the 90th percentile of how far the
+    pixels of a ring around its box (``ring`` of the box size wide) lie behind ``front``, counting only those
+    behind it (a floor or table beside the object lies partly behind it too); inf when none are."""
+    w, h = box[2] - box[0], box[3] - box[1]
+    outer = box_window(depth_m.shape, (box[0] - ring * w, box[1] - ring * h, box[2] + ring * w, box[3] + ring * h))
+    inner = box_window(depth_m.shape, box)
+    if outer is None or inner is None:
+        return np.inf
+    y1, y2, x1, x2 = outer
+    patch = depth_m[y1:y2, x1:x2].copy()
+    iy1, iy2, ix1, ix2 = inner
+    patch[iy1 - y1:iy2 - y1, ix1 - x1:ix2 - x1] = np.nan
+    behind = patch[np.isfinite(patch) & (patch > front + 0.01)] - front
+    return float(np.percentile(behind, 90)) if behind.size else np.inf
+
+
+def complete_amodal(points: np.ndarray, label: str, track_id: int, shift: float,
+                    room: float = np.inf) -> FeatureVector | None:
+    """A camera-frame view's feature vector completed behind its visible surface.
+
+    A depth camera sees the near side of an object. Assuming it is about as deep as it is wide (horizontally,
+    camera x), its depth is sqrt(12) times the horizontal standard deviation of the points, bounded by the
+    free depth ``room`` behind it (a screen on a wall cannot extend into the wall). Along the viewing ray the
+    centre lies ``shift`` standard deviations behind the near side (10th percentile), at most half the depth,
+    and the spread is that of a uniform extent of that depth; across the ray the points' own statistics stay.
+    Pixels of a supporting surface that join the object's depth segment then no longer stretch it.
+    """
+    f = feature_from_points(points, label, track_id)
+    if f is None:
+        return None
+    ray = f.mean / np.linalg.norm(f.mean)
+    along = points @ ray
+    sx = float(np.sqrt(f.cov[0, 0]))
+    depth = min(np.sqrt(12.0) * sx, room)
+    centre = float(np.percentile(along, 10)) + min(shift * sx, depth / 2.0)
+    P = np.eye(3) - np.outer(ray, ray)
+    mean = P @ f.mean + centre * ray
+    cov = P @ f.cov @ P + depth ** 2 / 12.0 * np.outer(ray, ray)
+    return FeatureVector(mean, cov, f.n, label, track_id, f.sources)
 
 
 def backproject(depth_m: np.ndarray, K: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -123,6 +173,19 @@ def backproject_detection(
     rows, cols = object_pixels(depth_m, box, config)
     idx = stride_subsample(len(rows), config.max_points)
     return transform(T_wc, backproject(depth_m, K, rows[idx], cols[idx]))
+
+
+def detection_feature(depth_m: np.ndarray, K: np.ndarray, box: Box, label: str, track_id: int,
+                      config: FeatureConfig) -> FeatureVector | None:
+    """The camera-frame feature vector of a detection (amodally completed when configured); None when too few
+    points."""
+    rows, cols = object_pixels(depth_m, box, config)
+    idx = stride_subsample(len(rows), config.max_points)
+    points = backproject(depth_m, K, rows[idx], cols[idx])
+    if config.amodal is None or len(points) < 3:
+        return feature_from_points(points, label, track_id)
+    front = float(np.percentile(points[:, 2], 10))
+    return complete_amodal(points, label, track_id, config.amodal, room_behind(depth_m, box, front))
 
 
 def feature_from_points(points: np.ndarray, label: str, track_id: int = -1) -> FeatureVector | None:

@@ -9,14 +9,13 @@ import numpy as np
 
 from graph.geometry import inverse
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
-from perception.features import (FeatureConfig, FeatureVector, backproject_detection, feature_from_points,
-                                 merge_features, transform_feature)
+from perception.features import (FeatureConfig, FeatureVector, detection_feature, merge_features,
+                                 transform_feature)
 from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
 from perception.tracks import Tracker
 
 
-_IDENTITY = np.eye(4)
 BORDER_PX = 4
 """A box within this many pixels of the image border is cut by it."""
 
@@ -64,8 +63,7 @@ class ObjectMapper:
                               inverse(pose) @ self._prev.pose, self.npda).pairs
         self.associations += len(pairs)
         ids = self.tracker.update(index, [d.label for d in detections], pairs)
-        local = [feature_from_points(backproject_detection(depth_m, K, _IDENTITY, d.box, self.features), d.label, t)
-                 for d, t in zip(detections, ids)]
+        local = [detection_feature(depth_m, K, d.box, d.label, t, self.features) for d, t in zip(detections, ids)]
         obs = [None if f is None else transform_feature(self._store(index, f), pose) for f in local]
         h, w = depth_m.shape[:2]
         self.last_observations = [(t, f.mean, float(np.sqrt(np.linalg.eigvalsh(f.cov)[-1])))

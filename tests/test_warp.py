@@ -7,7 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from graph.geometry import inverse
-from perception.features import FeatureConfig, backproject_detection, dominant_depth_mask, feature_from_points
+from perception.features import (FeatureConfig, backproject_detection, detection_feature, dominant_depth_mask,
+                                 feature_from_points)
 from perception.warp import needs_warp, warp_box, warp_depth
 from service.sources import open_dataset
 
@@ -88,3 +89,26 @@ def test_back_projected_feature_is_the_object_and_not_its_background() -> None:
     assert f is not None and len(pts) == 400
     np.testing.assert_allclose(f.mean, [1.0, 2.0, 1.5], atol=1e-6)
     assert f.var[2] < 1e-9 and f.var[0] == pytest.approx(0.2**2 / 12, rel=0.05)
+
+
+def test_amodal_completion_puts_a_face_on_box_centre_behind_its_visible_face() -> None:
+    """A 0.4 m wide box seen face on at 2 m: its centre is half its width behind the face, its depth spread that
+    of a 0.4 m extent, whatever the floor pixels joined to its depth segment below it add."""
+    depth = _plane_depth(4.0)
+    depth[20:40, 30:50] = 2.0  # the face: 20 px at fx 100 and 2 m = 0.4 m
+    depth[40:45, 25:55] = np.linspace(1.97, 2.03, 5)[:, None]  # a floor joined to the face's depth segment
+    f = detection_feature(depth, K, (30.0, 20.0, 50.0, 45.0), "box", 3, FeatureConfig())
+    assert f is not None and f.track_id == 3
+    assert f.mean[2] == pytest.approx(2.2, abs=0.03)
+    assert f.var[2] == pytest.approx(0.4**2 / 12, rel=0.1)
+    plain = detection_feature(depth, K, (30.0, 20.0, 50.0, 45.0), "box", 3, FeatureConfig(amodal=None))
+    assert plain.mean[2] < 2.05  # without completion the centre sits on the visible face
+
+
+def test_amodal_depth_is_bounded_by_the_wall_behind_a_flat_object() -> None:
+    """A 0.4 m wide screen 5 cm in front of a wall cannot be 0.4 m deep: the wall around it bounds it."""
+    depth = _plane_depth(2.05)
+    depth[20:40, 30:50] = 2.0
+    f = detection_feature(depth, K, (30.0, 20.0, 50.0, 40.0), "tv", 1, FeatureConfig(gap_m=0.02))
+    assert f is not None
+    assert 2.0 < f.mean[2] <= 2.026 and f.var[2] <= 0.05**2 / 12 + 1e-9
