@@ -11,6 +11,10 @@ import pytest
 from graph.geometry import pose_from_tum
 from perception.frame import CameraModel, Detection, Frame, Intrinsics
 
+from service.cli import single_threaded_blas
+
+single_threaded_blas()  # as the objslam command does: tests run the pipeline as the service runs it
+
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 REDKITCHEN = SHARED_DATA / "7scenes_redkitchen_1000"
 
