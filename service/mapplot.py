@@ -22,7 +22,8 @@ def ground_axes(points: np.ndarray) -> np.ndarray:
 
 
 def plot_objects(ax, objects: list[dict], axes: np.ndarray, origin: np.ndarray) -> None:
-    """Each object's ellipse (covariance projected on the ground plane, ~1.5 std) with its label."""
+    """Each object's ellipse (covariance projected on the ground plane, ~1.5 std) with its label, and a cross
+    at its iSAM2 landmark when it has one."""
     from matplotlib.patches import Ellipse
 
     colours = plt.get_cmap("tab10")
@@ -34,6 +35,9 @@ def plot_objects(ax, objects: list[dict], axes: np.ndarray, origin: np.ndarray) 
         angle = np.degrees(np.arctan2(vecs[1, 1], vecs[0, 1]))
         ax.add_patch(Ellipse(mean, h, w, angle=angle, fill=False, lw=1.5, color=colours(i % 10)))
         ax.annotate(o["label"], mean, fontsize=7, ha="center", color=colours(i % 10))
+        if o.get("landmark") is not None:  # the object's iSAM2 landmark
+            mark = (np.asarray(o["landmark"]) - origin) @ axes.T
+            ax.plot(*mark[:2], marker="x", ms=5, color=colours(i % 10))
 
 
 def plot_map(path: Path, trajectory: Trajectory, odometry: Trajectory, gt: Trajectory | None,
