@@ -254,7 +254,10 @@ class Pipeline:
         if self.objects is None or not self._object_poses:
             return
         n = len(self._object_poses)
-        now, used = self.graph.poses()[:n], np.stack(self._object_poses)
+        # at most ~110 keyframes checked (every n/100-th and the last 10): an optimisation that matters moves
+        # many keyframes together, and a full estimate per keyframe would grow with the map
+        idx = np.unique(np.r_[np.arange(0, n, max(1, n // 100)), np.arange(max(0, n - 10), n)])
+        now, used = np.stack([self.graph.pose(int(k)) for k in idx]), np.stack([self._object_poses[k] for k in idx])
         moved = np.linalg.norm(now[:, :3, 3] - used[:, :3, 3], axis=1).max()
         cos = (np.einsum("nij,nij->n", now[:, :3, :3], used[:, :3, :3]) - 1.0) / 2.0
         turned = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max()
@@ -262,6 +265,7 @@ class Pipeline:
         if moved <= cfg.repose_m and turned <= cfg.repose_deg:
             return
         t0 = time.perf_counter()
+        now = self.graph.poses()[:n]
         self.objects.repose(now @ self._color_from_body())
         self._object_poses = list(now)
         if self.landmarks is not None:
