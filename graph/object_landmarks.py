@@ -71,7 +71,8 @@ class ObjectLandmarks:
         return self._add(items)
 
     def sync(self, objects: Sequence[Any]) -> tuple[int, int]:
-        """Follow a re-clustering (objects with ``id``, ``tracks``, ``n_observations``): retract measurements whose track changed object, add the newly mapped ones.
+        """Follow a re-clustering (objects with ``id``, ``tracks``, ``n_observations``): retract the measurements
+        whose track changed object, add the newly mapped ones.
 
         Returns (added, retracted) measurement counts.
         """

@@ -38,13 +38,15 @@ class NoiseSettings:
 
     ``partial_relinearization_check``: look for variables to relinearize only in the cliques an update
     touches, not in the whole tree (``objslam bench isam2``: p95 update time at 10,000 poses 4x lower).
+    ``relinearize_threshold`` 0.1 (gtsam's default): p95 update 4x lower than 0.01 at 10,000 poses, with the
+    same ATE on 7-Scenes (4.03 cm) and the synthetic scenes.
     """
 
     odometry_sigma_m: float = 0.02
     odometry_sigma_deg: float = 1.0
     prior_sigma_m: float = 1e-4
     prior_sigma_deg: float = 0.01
-    relinearize_threshold: float = 0.01
+    relinearize_threshold: float = 0.1
     relinearize_skip: int = 1
     partial_relinearization_check: bool = True
 

@@ -86,7 +86,8 @@ def run_landmarks_bench(console: Console, datasets: list[str] | None, write: Pat
     show_table(console, "Objects in the graph", header, rows)
     notes = ("Frames replayed without odometry (visual front end). ATE: RMSE over every frame after SE(3) "
              "alignment. A stable object (>= 5 pooled feature vectors) is a Point3 landmark measured by the "
-             "camera-frame centre of each view not cut by the image border (amodally completed, as in `bench objects`) (sigma = max(0.1 m, largest point std), Huber); re-posings "
+             "camera-frame centre of each view not cut by the image border (amodally completed, as in "
+             "`bench objects`; sigma = max(0.1 m, largest point std), Huber); re-posings "
              "count the optimisations that moved an observing keyframe > 1 cm or 0.5 deg, after which every "
              "feature vector is recomputed from the new poses and the objects re-clustered. Errors: landmark "
              "estimate and cluster centre (objects with a landmark, after the ATE alignment) against the true "
