@@ -25,6 +25,15 @@ at all much later (config2: P 7 % / R 7 % after 70k steps, against R near 100 % 
 action is best in a state the policy can tell apart, only how fast each is learned; where its memory
 cannot tell a due visit from a first one it would favour loop closures, so the weights are annealed
 to 1 (plain PPO) by ``balance`` x total_steps.
+
+Auxiliary visit-memory loss (``aux_coef``; UNREAL-style auxiliary task with privileged simulator
+information). Whether a loop closure is due depends on memory: the current location must have been first
+visited more than c steps ago. From the sparse PPO reward alone the LSTM did not learn it, and the
+policies also closed "loops" on first visits. The environment reports that memory in ``info["visited"]``
+(one bit per location); the actor has a second linear head on its LSTM output (``aux_head``, n_loops
+logits) trained at every step with binary cross-entropy against it, weighted by ``aux_coef`` and added
+to the PPO loss. The gradient reaches the encoder and LSTM, not the policy head, which the PPO objective
+alone trains; the critic is unchanged. Acting, the ONNX export and evaluation never use the aux head.
 """
 
 from __future__ import annotations

@@ -88,7 +88,11 @@ def test_onnx_actor_matches_torch_on_recorded_sequences(tmp_path):
         seq.append(np.stack([env.step(0)[0] for env in envs]))
     observations = np.stack(seq)
     reference = torch_probabilities(trainer.actor, observations)
+    assert trainer.actor.aux_head is not None  # trained with the auxiliary loss; the export leaves it out
     policy = OnnxPolicy(export_trainer(trainer, tmp_path / "p.onnx", wall_s=0.0))
+    assert [i.name for i in policy.session.get_inputs()] == ["obs", "h", "c"]
+    assert [o.name for o in policy.session.get_outputs()] == ["probs", "h_out", "c_out"]
+    assert policy.session.get_outputs()[0].shape[-1] == 6  # config3: 5 locations + "no loop closure"
     policy.reset(3)
     got = np.stack([policy.probabilities(obs) for obs in observations])
     assert np.abs(got - reference).max() < 1e-5
