@@ -80,7 +80,7 @@ class TrainConfig:
     ent_coef: float = 0.2  # entropy bonus at the start: keeps the rare loop-closure actions explored
     ent_coef_final: float = 0.005  # ... annealed linearly to this over total_steps
     vf_coef: float = 0.5  # critic loss weight
-    aux_coef: float = 1.0  # auxiliary visit-memory loss of the actor (see module doc); 0 = off, no aux head
+    aux_coef: float = 0.3  # auxiliary visit-memory loss of the actor (see module doc); 0 = off, no aux head
     max_grad_norm: float = 0.5  # per network
     reward_scale: float = 0.01  # rewards (+-100, +10, -500) are scaled for learning; curves report them unscaled
     hidden: int = 128  # LSTM cell size
