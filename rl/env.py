@@ -11,7 +11,9 @@ more than ``max_missed`` consecutive missed loop closures, or after ``max_false`
 loop-closure actions where none was due; evaluation runs (``terminate=False``) never end.
 
 Each step's ``info`` describes the step just judged: ``due``, ``correct_action``, ``loop`` (location
-index or -1), ``cell`` and ``cell_action`` (eq. 3.19's i * N + j for the cell acted on).
+index or -1), ``cell``, ``cell_action`` (eq. 3.19's i * N + j for the cell acted on) and ``visited``
+(bool, one per location: first visited more than c steps ago, i.e. a loop closure would be due there;
+the memory the policy must keep, privileged information for the trainer's auxiliary loss).
 """
 
 from __future__ import annotations
@@ -55,6 +57,7 @@ class LoopClosureGrid(gym.Env):
         self.observation_space = gym.spaces.Box(0, 255, (OBS_SIZE, OBS_SIZE, 3), dtype=np.uint8)
         self.action_space = gym.spaces.Discrete(self.grid.n_loops + 1)
         self._loop_index = self.grid.loop_index()
+        self._loop_cells = tuple(np.array(self.grid.loops, dtype=np.int64).reshape(-1, 2).T)
         self._free = np.argwhere(~self.grid.walls)
         self._moves = [(h, k) for h in range(4) for k in (1, 2)]
         self.cell = (0, 0)
@@ -90,7 +93,7 @@ class LoopClosureGrid(gym.Env):
         self.missed = self.missed + 1 if due and action != correct else (0 if due else self.missed)
         self.false_streak = self.false_streak + 1 if (action != 0 and not due) else 0
         info = {"due": due, "correct_action": correct, "loop": loop if loop >= 0 else -1, "cell": self.cell,
-                "cell_action": self.cell[0] * self.grid.shape[1] + self.cell[1]}
+                "cell_action": self.cell[0] * self.grid.shape[1] + self.cell[1], "visited": self.visited()}
         r = self.rules
         terminated = r.terminate and (self.missed > r.max_missed or self.false_streak >= r.max_false)
         if terminated:
@@ -112,6 +115,12 @@ class LoopClosureGrid(gym.Env):
             return False
         first = self.first_visit[self.cell]
         return bool(0 <= first < self.t - self.rules.exclude_last)
+
+    def visited(self) -> np.ndarray:
+        """(n_loops,) bool: location l was first visited more than c steps ago (a loop closure is due there
+        whenever the agent stands on it); the same test as ``loop_due``."""
+        first = self.first_visit[self._loop_cells]
+        return (first >= 0) & (first < self.t - self.rules.exclude_last)
 
     def due_action(self) -> int:
         """The correct action at the current cell: its location's action when a loop closure is due, else 0."""

@@ -33,9 +33,12 @@ class RecurrentNet(nn.Module):
 
     ``pool`` shrinks the 84 x 84 input first (1, 2 or 4); the first convolution's kernel and stride are
     scaled to match, so every variant sees the image at the same field of view.
+
+    ``aux`` > 0 adds ``aux_head``, a second linear layer on the LSTM output with that many logits, for an
+    auxiliary training loss (ppo.py: the visit memory); ``step`` and the ONNX export do not use it.
     """
 
-    def __init__(self, out: int, hidden: int = 128, head_gain: float = 0.01, pool: int = 1):
+    def __init__(self, out: int, hidden: int = 128, head_gain: float = 0.01, pool: int = 1, aux: int = 0):
         super().__init__()
         self.hidden = hidden
         kernel, stride = {1: (8, 4), 2: (4, 2), 4: (3, 1)}[pool]
@@ -56,6 +59,7 @@ class RecurrentNet(nn.Module):
             else:
                 nn.init.orthogonal_(p, 1.0)
         self.head = _init(nn.Linear(hidden, out), head_gain)
+        self.aux_head = _init(nn.Linear(hidden, aux), 1.0) if aux > 0 else None
 
     def initial_state(self, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
         z = torch.zeros(batch, self.hidden)
@@ -67,11 +71,12 @@ class RecurrentNet(nn.Module):
         return self.head(out[0]), h[0], c[0]
 
     def sequence(self, frames: torch.Tensor, index: torch.Tensor, starts: torch.Tensor, h: torch.Tensor,
-                 c: torch.Tensor) -> torch.Tensor:
+                 c: torch.Tensor, with_aux: bool = False):
         """Outputs over (T, B) steps whose observations are ``frames[index]``, from state (h, c).
 
         Passing each distinct image once (``frames``) and its uses (``index``) gives the same result as
         passing all T * B images, at the cost of the distinct ones. Memory is reset where ``starts`` is set.
+        ``with_aux`` returns (outputs, auxiliary head outputs).
         """
         T, B = starts.shape
         features = self.encoder(to_input(frames))[index.reshape(-1)].reshape(T, B, -1)
@@ -83,7 +88,12 @@ class RecurrentNet(nn.Module):
         for a, b in zip(cuts[:-1], cuts[1:]):
             out, (h, c) = self.lstm(features[a:b], (h * keep[a], c * keep[a]))
             outputs.append(out)
-        return self.head(torch.cat(outputs))
+        lstm_out = torch.cat(outputs)
+        if with_aux:
+            if self.aux_head is None:
+                raise ValueError("this network has no auxiliary head (aux=0)")
+            return self.head(lstm_out), self.aux_head(lstm_out)
+        return self.head(lstm_out)
 
 
 class OnnxActor(nn.Module):

@@ -25,6 +25,15 @@ at all much later (config2: P 7 % / R 7 % after 70k steps, against R near 100 % 
 action is best in a state the policy can tell apart, only how fast each is learned; where its memory
 cannot tell a due visit from a first one it would favour loop closures, so the weights are annealed
 to 1 (plain PPO) by ``balance`` x total_steps.
+
+Auxiliary visit-memory loss (``aux_coef``; UNREAL-style auxiliary task with privileged simulator
+information). Whether a loop closure is due depends on memory: the current location must have been first
+visited more than c steps ago. From the sparse PPO reward alone the LSTM did not learn it, and the
+policies also closed "loops" on first visits. The environment reports that memory in ``info["visited"]``
+(one bit per location); the actor has a second linear head on its LSTM output (``aux_head``, n_loops
+logits) trained at every step with binary cross-entropy against it, weighted by ``aux_coef`` and added
+to the PPO loss. The gradient reaches the encoder and LSTM, not the policy head, which the PPO objective
+alone trains; the critic is unchanged. Acting, the ONNX export and evaluation never use the aux head.
 """
 
 from __future__ import annotations
@@ -71,6 +80,7 @@ class TrainConfig:
     ent_coef: float = 0.2  # entropy bonus at the start: keeps the rare loop-closure actions explored
     ent_coef_final: float = 0.005  # ... annealed linearly to this over total_steps
     vf_coef: float = 0.5  # critic loss weight
+    aux_coef: float = 0.3  # auxiliary visit-memory loss of the actor (see module doc); 0 = off, no aux head
     max_grad_norm: float = 0.5  # per network
     reward_scale: float = 0.01  # rewards (+-100, +10, -500) are scaled for learning; curves report them unscaled
     hidden: int = 128  # LSTM cell size
@@ -111,19 +121,22 @@ class Buffer:
     dones: np.ndarray
     targets: np.ndarray
     at_loop: np.ndarray  # the agent stood on a loop-closure location
+    visited: np.ndarray  # (T, n_envs, n_loops) env info "visited": the auxiliary loss's targets
     states: np.ndarray  # (T, 4, n_envs, hidden): actor h, c, critic h, c
     filled: int = 0
 
     @classmethod
-    def empty(cls, T: int, n: int, hidden: int) -> Buffer:
+    def empty(cls, T: int, n: int, hidden: int, n_loops: int) -> Buffer:
         return cls(np.zeros((T, n, 84, 84, 3), np.uint8), np.zeros((T, n), bool), np.zeros((T, n), np.int64),
                    np.zeros((T, n), np.float32), np.zeros((T, n), np.float32), np.zeros((T, n), bool),
-                   np.zeros((T, n), np.int64), np.zeros((T, n), bool), np.zeros((T, 4, n, hidden), np.float32))
+                   np.zeros((T, n), np.int64), np.zeros((T, n), bool), np.zeros((T, n, n_loops), bool),
+                   np.zeros((T, 4, n, hidden), np.float32))
 
     def drop_front(self, n: int) -> None:
         """Keep steps [n, filled) as the start of the next batch."""
         keep = self.filled - n
-        for name in ("obs", "starts", "actions", "logprobs", "rewards", "dones", "targets", "at_loop", "states"):
+        for name in ("obs", "starts", "actions", "logprobs", "rewards", "dones", "targets", "at_loop", "visited",
+                     "states"):
             arr = getattr(self, name)
             arr[:keep] = arr[n:self.filled].copy()
         self.filled = keep
@@ -161,7 +174,12 @@ def distinct_frames(obs: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
 
 def step_info(info: dict, key: str, done: np.ndarray) -> np.ndarray:
     """A vector env's per-step info field; with same-step autoreset, finished actors report it in final_info."""
-    values = np.array(info[key]) if key in info else np.zeros(len(done), np.int64)
+    if key in info:
+        values = np.array(info[key])
+    elif done.any():  # every actor finished: the shape of the field comes from final_info
+        values = np.zeros_like(np.array(info["final_info"][key]))
+    else:
+        values = np.zeros(len(done), np.int64)
     if done.any():
         final = info["final_info"]
         values[done] = np.array(final[key])[done]
@@ -189,12 +207,13 @@ class Trainer:
         self.envs = make_envs(cfg, self.grid)
         self.n_actions = self.grid.n_loops + 1
         pool = cfg.pool or input_pool(self.grid.shape)
-        self.actor = RecurrentNet(self.n_actions, cfg.hidden, pool=pool)
+        self.actor = RecurrentNet(self.n_actions, cfg.hidden, pool=pool,
+                                  aux=self.grid.n_loops if cfg.aux_coef > 0 else 0)
         self.critic = RecurrentNet(1, cfg.hidden, head_gain=1.0, pool=pool)
         with torch.no_grad():  # prior: "no loop closure" is the common case (probability no_lc_prior at start)
             self.actor.head.bias[0] = np.log(cfg.no_lc_prior) - np.log((1 - cfg.no_lc_prior) / self.grid.n_loops)
         self.optimizer = torch.optim.Adam([*self.actor.parameters(), *self.critic.parameters()], lr=cfg.lr, eps=1e-5)
-        self.buffer = Buffer.empty(cfg.rollout, cfg.n_envs, cfg.hidden)
+        self.buffer = Buffer.empty(cfg.rollout, cfg.n_envs, cfg.hidden, self.grid.n_loops)
         self.global_step = 0
         self.curve: list[dict] = []
         obs, _ = self.envs.reset(seed=cfg.seed)
@@ -226,6 +245,7 @@ class Trainer:
             done = term | trunc
             b.rewards[t], b.dones[t], b.targets[t] = reward, done, step_info(info, "correct_action", done)
             b.at_loop[t] = step_info(info, "loop", done) >= 0
+            b.visited[t] = step_info(info, "visited", done)
             self.state = [s.numpy() for s in (ah, ac, ch, cc)]
             self.next_obs, self.next_start = obs, term | trunc
             self._returns += reward
@@ -289,17 +309,23 @@ class Trainer:
         actions = torch.from_numpy(b.actions[:T])
         old_logp = torch.from_numpy(b.logprobs[:T])
         adv_t, ret_t = torch.from_numpy(advantages), torch.from_numpy(returns)
+        visited = torch.from_numpy(b.visited[:T]).float()
         kinds = b.at_loop[:T] if cfg.balance_first_visits else None
         weight = torch.from_numpy(balance_weights(b.targets[:T], kinds) ** self.balance_power())
         groups = np.array_split(np.arange(cfg.n_envs), cfg.minibatches)
         rng = np.random.default_rng(cfg.seed + self.global_step)
-        clipped = []
+        clipped, aux_losses = [], []
         for _ in range(cfg.epochs):
             for g in rng.permutation(len(groups)):
                 e = torch.from_numpy(groups[g])
                 used, sub = torch.unique(index[:, e], return_inverse=True)
                 f = frames[used]
-                logits = self.actor.sequence(f, sub, starts[:, e], s0[0][e], s0[1][e])
+                if cfg.aux_coef > 0:
+                    logits, aux_logits = self.actor.sequence(f, sub, starts[:, e], s0[0][e], s0[1][e], with_aux=True)
+                    aux_loss = nn.functional.binary_cross_entropy_with_logits(aux_logits, visited[:, e])
+                else:
+                    logits = self.actor.sequence(f, sub, starts[:, e], s0[0][e], s0[1][e])
+                    aux_loss = torch.zeros(())
                 value = self.critic.sequence(f, sub, starts[:, e], s0[2][e], s0[3][e]).squeeze(-1)
                 dist = torch.distributions.Categorical(logits=logits)
                 logp = dist.log_prob(actions[:, e])
@@ -310,15 +336,16 @@ class Trainer:
                 policy_loss = -(weight[:, e] * surrogate).mean()
                 value_loss = 0.5 * ((value - ret_t[:, e]) ** 2).mean()
                 entropy = dist.entropy().mean()
-                loss = policy_loss + cfg.vf_coef * value_loss - self.ent_coef() * entropy
+                loss = policy_loss + cfg.vf_coef * value_loss - self.ent_coef() * entropy + cfg.aux_coef * aux_loss
                 self.optimizer.zero_grad()
                 loss.backward()
                 nn.utils.clip_grad_norm_(self.actor.parameters(), cfg.max_grad_norm)
                 nn.utils.clip_grad_norm_(self.critic.parameters(), cfg.max_grad_norm)
                 self.optimizer.step()
                 clipped.append(float(((ratio - 1).abs() > cfg.clip).float().mean()))
+                aux_losses.append(aux_loss.item())
         return {"policy_loss": policy_loss.item(), "value_loss": value_loss.item(), "entropy": entropy.item(),
-                "clip_fraction": float(np.mean(clipped))}
+                "clip_fraction": float(np.mean(clipped)), "aux_loss": float(np.mean(aux_losses))}
 
     # ------------------------------------------------------------ loop, checkpoints
 
@@ -353,11 +380,16 @@ class Trainer:
     def resume(cls, path: Path, total_steps: int | None = None) -> Trainer:
         """Continue a saved run (the environments restart; networks, optimiser and counters carry on)."""
         ckpt = torch.load(path, weights_only=False)
-        cfg = TrainConfig(**ckpt["config"])
+        # runs saved before the auxiliary loss existed have no aux head: they continue without it
+        cfg = TrainConfig(**{"aux_coef": 0.0, **ckpt["config"]})
         if total_steps is not None:
             cfg.total_steps = total_steps
         trainer = cls(cfg, GridMap.from_json(ckpt["grid"]))
-        trainer.actor.load_state_dict(ckpt["actor"])
+        try:
+            trainer.actor.load_state_dict(ckpt["actor"])
+        except RuntimeError as exc:
+            raise ValueError(f"{path}: the checkpoint's actor does not match its configuration "
+                             f"(aux_coef {cfg.aux_coef}): {str(exc).splitlines()[0]}") from exc
         trainer.critic.load_state_dict(ckpt["critic"])
         trainer.optimizer.load_state_dict(ckpt["optimizer"])
         trainer.global_step, trainer.curve = ckpt["global_step"], ckpt["curve"]

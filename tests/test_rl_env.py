@@ -178,3 +178,46 @@ def test_evaluation_baselines_bound_the_task():
     assert silent.lc_taken == 0 and silent.recall == 0.0 and silent.lc_due == oracle.lc_due  # same walks
     rand = evaluate(grid, RandomPolicy(0), runs=5, seed=1)
     assert rand.precision < 0.2 and 0.05 < rand.recall < 0.5  # 1 in 5 actions is right when one is due
+
+
+def test_visited_info_is_the_memory_that_decides_due():
+    """A scripted walk (the env's own motion, restricted to one move at a time) with c = 4."""
+    env = LoopClosureGrid(open_map(), rules=GridRules(exclude_last=4, terminate=False))  # loops (1, 1), (5, 5)
+    env.reset(seed=0, options={"cell": (1, 1), "heading": 1})
+    up, right, down, left = 0, 1, 2, 3
+    script = [(right, 2), (right, 2), (down, 2), (down, 2),  # t = 4: first visit of location 1 at (5, 5)
+              (up, 1), (down, 1),  # t = 6: back at (5, 5) within the last c steps
+              (left, 2), (up, 2), (up, 2), (left, 2),  # t = 10: back at (1, 1), first visited at t = 0
+              (right, 2), (right, 2), (down, 2), (down, 2),  # t = 14: (5, 5) again, first visit 4 < 14 - 4
+              (left, 1)]
+    infos = []
+    for move in script:
+        env.valid_moves = lambda cell=None, move=move: [move]
+        infos.append(env.step(0)[4])
+    infos.append(env.step(0)[4])
+    visited = np.array([info["visited"] for info in infos])
+    assert visited.shape == (16, 2) and visited.dtype == bool
+    # location 0: first visit t = 0, remembered from t = 5; location 1: first visit t = 4, from t = 9
+    assert visited[:, 0].tolist() == [t >= 5 for t in range(16)]
+    assert visited[:, 1].tolist() == [t >= 9 for t in range(16)]
+    assert [info["cell"] for info in infos[:5]] == [(1, 1), (1, 3), (1, 5), (3, 5), (5, 5)]
+    assert [t for t, info in enumerate(infos) if info["due"]] == [10, 14]
+    assert [t for t, info in enumerate(infos) if info["loop"] >= 0] == [0, 4, 6, 10, 14]
+    for info in infos:  # due exactly where the agent stands on a location it remembers
+        assert info["due"] == (info["loop"] >= 0 and bool(info["visited"][info["loop"]]))
+    env.reset(seed=1)
+    assert not env.step(0)[4]["visited"].any()  # a new episode remembers nothing
+
+
+def test_visited_info_agrees_with_the_walk_in_a_long_random_run():
+    env = LoopClosureGrid("config4", rules=GridRules(exclude_last=4, terminate=False))
+    env.reset(seed=5)
+    loops = env.grid.loops
+    first: dict = {}
+    for t in range(1500):
+        first.setdefault(env.cell, t)
+        info = env.step(int(env.due_action()))[4]
+        expected = [cell in first and first[cell] < t - 4 for cell in loops]
+        assert info["visited"].tolist() == expected, t
+        assert info["due"] == (info["loop"] >= 0 and expected[info["loop"]])
+    assert all(info["visited"])  # 1500 steps visit every location of a 10 x 10 map

@@ -14,6 +14,7 @@ torch = pytest.importorskip("torch", reason="the train extra (torch) is not inst
 
 from rl.env import GridRules, LoopClosureGrid  # noqa: E402
 from rl.export import export_trainer, torch_probabilities  # noqa: E402
+from rl.networks import RecurrentNet  # noqa: E402
 from rl.policy import OnnxPolicy  # noqa: E402
 from rl.ppo import TrainConfig, Trainer, balance_weights, batch_length  # noqa: E402
 
@@ -87,7 +88,11 @@ def test_onnx_actor_matches_torch_on_recorded_sequences(tmp_path):
         seq.append(np.stack([env.step(0)[0] for env in envs]))
     observations = np.stack(seq)
     reference = torch_probabilities(trainer.actor, observations)
+    assert trainer.actor.aux_head is not None  # trained with the auxiliary loss; the export leaves it out
     policy = OnnxPolicy(export_trainer(trainer, tmp_path / "p.onnx", wall_s=0.0))
+    assert [i.name for i in policy.session.get_inputs()] == ["obs", "h", "c"]
+    assert [o.name for o in policy.session.get_outputs()] == ["probs", "h_out", "c_out"]
+    assert policy.session.get_outputs()[0].shape[-1] == 6  # config3: 5 locations + "no loop closure"
     policy.reset(3)
     got = np.stack([policy.probabilities(obs) for obs in observations])
     assert np.abs(got - reference).max() < 1e-5
@@ -96,3 +101,69 @@ def test_onnx_actor_matches_torch_on_recorded_sequences(tmp_path):
         _, h, c = trainer.actor.step(torch.from_numpy(obs), h, c)
     assert np.abs(policy.h - h.detach().numpy()).max() < 1e-5 and np.abs(policy.c - c.detach().numpy()).max() < 1e-5
     assert not np.allclose(reference[0], reference[-1])  # memory and views change the output over time
+
+
+def test_buffer_stores_the_visited_targets_across_episode_ends():
+    cfg = TrainConfig(map="config2", total_steps=10_000, n_envs=2, minibatches=2, b1=8, b2=96, threads=1,
+                      max_episode_steps=30)  # several episodes end inside one buffer
+    trainer = Trainer(cfg)
+    trainer.collect()
+    b = trainer.buffer
+    assert b.visited.shape == (96, 2, 4) and b.starts[1:].any()
+    assert not b.visited[b.starts].any()  # the first step of an episode remembers nothing
+    due = b.targets > 0
+    assert due.any()
+    assert b.visited[due, b.targets[due] - 1].all()  # a loop closure is due only where the location is remembered
+    for e in range(2):  # within an episode, memory only grows
+        for t in range(1, 96):
+            if not b.starts[t, e]:
+                assert (b.visited[t, e] >= b.visited[t - 1, e]).all(), (t, e)
+    assert b.visited[~b.starts].any()
+
+
+def test_aux_loss_trains_the_aux_head_and_the_lstm_but_not_the_policy_head():
+    net = RecurrentNet(5, 16, aux=4)
+    frames = torch.randint(0, 255, (6, 84, 84, 3), dtype=torch.uint8)
+    index = torch.randint(0, 6, (7, 2))
+    starts = torch.zeros(7, 2, dtype=torch.bool)
+    logits, aux = net.sequence(frames, index, starts, *net.initial_state(2), with_aux=True)
+    assert logits.shape == (7, 2, 5) and aux.shape == (7, 2, 4)
+    assert torch.equal(logits, net.sequence(frames, index, starts, *net.initial_state(2)))
+    aux.sum().backward()
+    assert net.head.weight.grad is None  # the policy head only learns from the PPO objective
+    assert net.aux_head.weight.grad.abs().sum() > 0 and net.lstm.weight_hh_l0.grad.abs().sum() > 0
+    with pytest.raises(ValueError, match="no auxiliary head"):
+        RecurrentNet(5, 16).sequence(frames, index, starts, *net.initial_state(2), with_aux=True)
+
+    cfg = TrainConfig(map="config2", total_steps=400, n_envs=2, minibatches=2, b1=8, b2=48, threads=1)
+    assert cfg.aux_coef > 0
+    trainer = Trainer(cfg)
+    assert trainer.actor.aux_head.out_features == 4 and trainer.critic.aux_head is None
+    before = {k: v.clone() for k, v in trainer.actor.state_dict().items()}
+    trainer.train()
+    losses = [row["aux_loss"] for row in trainer.curve]
+    assert all(np.isfinite(losses)) and min(losses) > 0
+    after = trainer.actor.state_dict()
+    assert not torch.equal(before["aux_head.weight"], after["aux_head.weight"])
+    assert not torch.equal(before["lstm.weight_hh_l0"], after["lstm.weight_hh_l0"])
+
+    plain = Trainer(TrainConfig(map="config2", total_steps=100, n_envs=2, minibatches=2, b1=8, b2=24, threads=1,
+                                aux_coef=0.0))
+    assert plain.actor.aux_head is None and not any(k.startswith("aux") for k in plain.actor.state_dict())
+    plain.train()
+    assert all(row["aux_loss"] == 0.0 for row in plain.curve)
+
+
+def test_resume_of_a_checkpoint_saved_before_the_aux_loss(tmp_path):
+    cfg = TrainConfig(map="config1", total_steps=100, n_envs=2, minibatches=2, b1=8, b2=24, threads=1, aux_coef=0.0)
+    Trainer(cfg).train(tmp_path / "old.pt")
+    ckpt = torch.load(tmp_path / "old.pt", weights_only=False)
+    del ckpt["config"]["aux_coef"]  # as written by the trainer before aux_coef existed
+    torch.save(ckpt, tmp_path / "old.pt")
+    resumed = Trainer.resume(tmp_path / "old.pt", total_steps=200)
+    assert resumed.cfg.aux_coef == 0.0 and resumed.actor.aux_head is None
+    resumed.train()
+    ckpt["config"]["aux_coef"] = 1.0  # a configuration that does not match the saved networks
+    torch.save(ckpt, tmp_path / "bad.pt")
+    with pytest.raises(ValueError, match="does not match its configuration"):
+        Trainer.resume(tmp_path / "bad.pt")
