@@ -21,16 +21,15 @@ def backproject(depth_m: np.ndarray, K: Intrinsics, step: int = 1) -> tuple[np.n
 
 def project_zbuffer(points: np.ndarray, K: Intrinsics, width: int, height: int) -> np.ndarray:
     """Depth image (metres, NaN = empty) of camera-frame points, nearest point per pixel wins."""
-    out = np.full(height * width, np.nan, dtype=np.float32)
-    z = points[:, 2]
+    z = points[:, 2].astype(np.float32)
     front = z > 1e-6
     pts, z = points[front], z[front]
-    u = np.round(pts[:, 0] / z * K.fx + K.cx).astype(np.int64)
-    v = np.round(pts[:, 1] / z * K.fy + K.cy).astype(np.int64)
+    u = np.rint(pts[:, 0] / pts[:, 2] * K.fx + K.cx).astype(np.int64)
+    v = np.rint(pts[:, 1] / pts[:, 2] * K.fy + K.cy).astype(np.int64)
     inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
-    idx, z = v[inside] * width + u[inside], z[inside]
-    order = np.argsort(z, kind="stable")[::-1]  # far to near: the nearest write lands last
-    out[idx[order]] = z[order]
+    out = np.full(height * width, np.inf, dtype=np.float32)
+    np.minimum.at(out, v[inside] * width + u[inside], z[inside])  # z-buffer: the nearest point of a pixel wins
+    out[np.isinf(out)] = np.nan
     return out.reshape(height, width)
 
 
@@ -38,7 +37,7 @@ def reproject_depth(depth_m: np.ndarray, K_src: Intrinsics, K_dst: Intrinsics, T
                     width: int, height: int) -> np.ndarray:
     """Depth seen from another camera: back-project with K_src, move by T_dst_src, z-buffer with K_dst."""
     pts, _, _ = backproject(depth_m, K_src)
-    moved = pts @ T_dst_src[:3, :3].T + T_dst_src[:3, 3]
+    moved = pts @ np.ascontiguousarray(T_dst_src[:3, :3].T) + T_dst_src[:3, 3]
     return project_zbuffer(moved, K_dst, width, height)
 
 
