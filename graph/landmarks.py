@@ -136,9 +136,11 @@ class Landmarks:
         return np.asarray(self.isam.calculateEstimatePoint3(L(j)))
 
     def landmarks(self) -> dict[int, np.ndarray]:
-        """All landmark estimates by id, from the estimate cached until the next update."""
-        estimate = self._current()
-        return {j: np.asarray(estimate.atPoint3(L(j))) for j in self._landmarks}
+        """All landmark estimates by id: from the cached full estimate when there is one, else one key at a time
+        (a full estimate costs O(poses) under the GIL; the service asks for the landmarks after every keyframe)."""
+        if self._estimate is not None:
+            return {j: np.asarray(self._estimate.atPoint3(L(j))) for j in self._landmarks}
+        return {j: np.asarray(self.isam.calculateEstimatePoint3(L(j))) for j in self._landmarks}
 
     def _drop_unconstrained(self, removed: list[int]) -> None:
         """Landmarks left without factors: iSAM2 removed their variables, so they wait to be observable again."""
