@@ -224,12 +224,12 @@ class Pipeline:
         t0 = time.perf_counter()
         camera = frame.camera
         depth = depth_in_color(frame.depth_m(), camera, scale=2)
-        body = self.graph.pose(kf)
+        body, color_from_body = self.graph.pose(kf), self._color_from_body()
         self._object_poses.append(body)
         reclustered = self.objects.add_keyframe(kf, self.keyframe_detections[kf], depth, camera.color.matrix(),
-                                                body @ self._color_from_body())
+                                                body @ color_from_body)
         if self.landmarks is not None:
-            to_body = np.linalg.inv(self._color_from_body())
+            to_body = np.linalg.inv(color_from_body)
             self.landmarks.observe(kf, [(t, to_body[:3, :3] @ p + to_body[:3, 3], extent)
                                         for t, p, extent in self.objects.last_observations])
             if reclustered:
