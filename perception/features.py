@@ -91,10 +91,6 @@ def dominant_depth_mask(depths: np.ndarray, anchor: float, gap_m: float) -> np.n
 
 def object_pixels(depth_m: np.ndarray, box: Box, config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
     """The box's valid pixels in the dominant depth segment anchored at the central median (SPEC 6.5)."""
-    return _segment(depth_m, box, config)
-
-
-def _segment(depth_m: np.ndarray, box: Box, config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
     rows, cols = box_pixels(depth_m, box)
     if len(rows) == 0:
         return rows, cols
