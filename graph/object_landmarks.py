@@ -50,7 +50,6 @@ class ObjectLandmarks:
         self.measurements: dict[Key, np.ndarray] = {}  # (x, y, z, sigma)
         self.assigned: dict[Key, tuple[int, int | None]] = {}  # -> (landmark, factor index; None while waiting)
         self.track_landmark: dict[int, int] = {}
-        self.declared: set[int] = set()
         self.failures = 0
 
     def observe(self, k: int, observations: Iterable[tuple[int, np.ndarray, float]]) -> int:
@@ -92,10 +91,9 @@ class ObjectLandmarks:
     def _add(self, items: list[tuple[Key, int]]) -> int:
         if not items:
             return 0
-        for j in {j for _, j in items} - self.declared:
-            self.graph.add_landmark(j)
-            self.declared.add(j)
-        waiting = {j for _, j in items if j not in self.graph.landmarks_in_solver()}
+        for j in {j for _, j in items}:
+            self.graph.add_landmark(j)  # declares it; a no-op for a landmark the graph already knows
+        waiting = {j for _, j in items} - self.graph.landmarks_in_solver()
         try:
             m = [self.measurements[key] for key, _ in items]
             indices = self.graph.add_landmark_measurements(
@@ -135,9 +133,9 @@ class ObjectLandmarks:
 
     def state(self) -> dict:
         return {"measurements": self.measurements, "assigned": self.assigned, "track_landmark": self.track_landmark,
-                "declared": sorted(self.declared), "failures": self.failures}
+                "failures": self.failures}
 
     def restore(self, state: dict) -> None:
         self.measurements, self.assigned = state["measurements"], state["assigned"]
-        self.track_landmark, self.declared = state["track_landmark"], set(state["declared"])
+        self.track_landmark = state["track_landmark"]
         self.failures = state["failures"]
