@@ -58,7 +58,7 @@ class ServiceNode:
         self.prefix = settings.key_prefix
         self.queue = IngestQueue(settings.ingest.queue_size)
         self.stats = ServiceStats()
-        self.pipeline = Pipeline(settings)
+        self.pipeline = Pipeline(settings, background=True)  # object mapping on its own threads
         self.limits = Limits(settings.ingest.max_payload_bytes, settings.ingest.max_image_pixels)
         self._lock = threading.Lock()  # guards the pipeline between the worker and the trajectory queryable
         self._summary_lock = threading.Lock()  # guards only the swap of ``_summary``
@@ -105,6 +105,7 @@ class ServiceNode:
             log.error("the worker did not stop within 10 s: no final snapshot, the last periodic one stands")
         else:
             self.snapshot(final=True)
+            self.pipeline.close()
         for entity in reversed(self._entities):
             try:
                 entity.undeclare()
@@ -259,7 +260,8 @@ class ServiceNode:
         if changed:
             log.warning("resuming a map made with other settings of %s; the current ones apply from now on",
                         ", ".join(changed))
-        pipeline = Pipeline.from_state(self.settings, state["pipeline"])
+        pipeline = Pipeline.from_state(self.settings, state["pipeline"], background=True)
+        self.pipeline.close()
         self.pipeline = pipeline
         self.stats.restore_counters(state["stats"])
         self.queue.dropped = state["frames_dropped"]
@@ -284,7 +286,7 @@ class ServiceNode:
         counts = {"keyframes": graph.num_keyframes, "poses": graph.num_keyframes, "factors": graph.num_factors,
                   "landmarks": graph.num_landmarks, "tracking_lost": p.tracking_lost,
                   "landmark_measurements": len(p.landmarks.assigned) if p.landmarks is not None else 0,
-                  "object_reposes": p.reposes,
+                  "object_reposes": p.reposes, "object_mapping_errors": p.mapping_errors,
                   "loop_closures": {"accepted": accepted, "rejected": len(records) - accepted},
                   "keyframe_detections_by_class": dict(p.detections_by_class), "objects": len(objects),
                   "objects_by_class": dict(Counter(o["label"] for o in objects))}

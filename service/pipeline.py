@@ -10,7 +10,8 @@ import logging
 import math
 import time
 from collections import Counter
-from dataclasses import dataclass, fields
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
+from dataclasses import dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -18,7 +19,7 @@ from pydantic import BaseModel
 
 from graph.object_landmarks import LandmarkConfig, ObjectLandmarks
 from graph.pose_graph import NoiseSettings, PoseGraph
-from perception.frame import CameraModel, Frame
+from perception.frame import CameraModel, Detection, Frame
 from perception.frontend import ExternalOdometry, KeyframePolicy, Step, VisualOdometry
 from perception.object_map import ObjectMapper, object_json
 from perception.odometry import FeatureExtractor, OdometryConfig, RelativePoseEstimator
@@ -42,6 +43,29 @@ class FrameRecord:
     is_keyframe: bool
     odometry: np.ndarray
     from_keyframe: np.ndarray
+
+
+@dataclass
+class KeyframeObjects:
+    """What mapping one keyframe's objects produced, to be applied to the graph (plain data)."""
+
+    keyframe: int
+    detections: list[Detection]
+    observations: list[tuple[int, np.ndarray, float]] = field(default_factory=list)  # (track, body-frame p, extent)
+    reclustered: bool = False
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+class InlineExecutor(Executor):
+    """Runs each task at once in the caller's thread (``run`` and tests: the same results as in background)."""
+
+    def submit(self, fn, /, *args, **kwargs) -> Future:
+        future: Future = Future()
+        try:
+            future.set_result(fn(*args, **kwargs))
+        except Exception as exc:  # handed to whoever takes the result, as a thread pool would
+            future.set_exception(exc)
+        return future
 
 
 def map_points(frame: Frame, step: int = 32, max_depth_m: float = 4.0) -> np.ndarray:
@@ -81,10 +105,22 @@ class Pipeline:
     the first frame), else RGB-D visual odometry; (3) a keyframe adds its odometry factor to iSAM2;
     (4) loop-closure candidates of the keyframe are verified and accepted ones become robust factors;
     (5) every frame is recorded relative to its keyframe, so the full trajectory follows the graph.
+
+    Object mapping of a keyframe (detector when the frame has no detections, NPDA, tracks, clustering) runs
+    on ``mapper`` while the next frames are tracked; its landmark measurements enter the graph when the next
+    keyframe is added (or on ``flush``). That point is fixed, so the result is the same whether ``mapper``
+    is a background thread (``background=True``, the service) or runs each job at once (``run``, tests).
     """
 
-    def __init__(self, settings: Settings):
+    def __init__(self, settings: Settings, background: bool = False):
         self.settings = settings
+        self._mapper: Executor = ThreadPoolExecutor(1, thread_name_prefix="objslam-mapper") if background \
+            else InlineExecutor()
+        self._detector_pool: Executor = ThreadPoolExecutor(1, thread_name_prefix="objslam-detector") \
+            if background else self._mapper
+        self._pending: Future | None = None  # the latest keyframe's object mapping, not yet applied
+        self._objects_view: list = []  # the objects as of the last applied mapping (read by object_list)
+        self.mapping_errors = 0
         self.graph = PoseGraph(from_settings(NoiseSettings, settings.graph))
         self.policy = from_settings(KeyframePolicy, settings.keyframes, settings.odometry)
         self.odometry_config = from_settings(OdometryConfig, settings.odometry)
@@ -173,8 +209,7 @@ class Pipeline:
                     self.graph.add_between(kf - back, kf, T, sigma_m, sigma_deg)
         self._kf_odometry.append(step.pose)
         self._kf_points.append(map_points(frame))
-        self._detect(kf, frame)
-        self._map_objects(kf, frame)
+        self._apply_objects()
         if self.loops is not None:
             t0 = time.perf_counter()
             features = step.features if step.features is not None else self._extractor.extract(frame)
@@ -182,6 +217,7 @@ class Pipeline:
             self.loops.add_keyframe(KeyframeEntry(kf, frame.timestamp, frame.seq, features), frame.rgb, policy)
             self.timings["loop_closure"] = time.perf_counter() - t0
         self._repose_objects()
+        self._submit_objects(kf, frame)
         return FrameRecord(frame.timestamp, frame.seq, kf, True, step.pose, np.eye(4))
 
     def _policy_candidates(self, kf: int) -> list[tuple[int, str, float]]:
@@ -204,38 +240,83 @@ class Pipeline:
                  for k, pts in enumerate(self._kf_points[:len(poses)])]
         return np.concatenate(parts)
 
-    def _detect(self, kf: int, frame: Frame) -> None:
-        """Keyframe detections: the frame's own, else the ONNX detector's (SPEC 6.1)."""
-        detections = frame.detections
-        if detections is None and self.settings.detector.enabled:
-            t0 = time.perf_counter()
-            detections = self._get_detector().detect(frame.rgb)
-            self.timings["detector"] = time.perf_counter() - t0
-        self.keyframe_detections[kf] = detections or []
-        self.detections_by_class.update(d.label for d in self.keyframe_detections[kf])
+    def _submit_objects(self, kf: int, frame: Frame) -> None:
+        """Start mapping keyframe ``kf``'s objects: detection (SPEC 6.1) on its own thread, so the detector of
+        this keyframe runs while the previous one is still being associated, then association and clustering.
+        Inputs are taken now (the keyframe's pose as estimated at this point)."""
+        detections: Future
+        if frame.detections is None and self.settings.detector.enabled:
+            detections = self._detector_pool.submit(self._detect, frame.rgb)
+        else:
+            detections = Future()
+            detections.set_result((frame.detections or [], {}))
+        body, color_from_body = self.graph.pose(kf), self._color_from_body()
+        if self.objects is not None:
+            self._object_poses.append(body)
+        self._pending = self._mapper.submit(self._map_objects, kf, frame, detections, body, color_from_body)
 
-    def _map_objects(self, kf: int, frame: Frame) -> None:
+    def _detect(self, rgb: np.ndarray) -> tuple[list[Detection], dict[str, float]]:
+        t0 = time.perf_counter()
+        detections = self._get_detector().detect(rgb)
+        return detections, {"detector": time.perf_counter() - t0}
+
+    def _map_objects(self, kf: int, frame: Frame, detections: Future, body: np.ndarray,
+                     color_from_body: np.ndarray) -> KeyframeObjects:
         """Associate the keyframe's detections, extend tracks and re-cluster objects (Sec. 2.4, SPEC 6.2-6.7).
 
-        Boxes are colour pixels, so depth is registered to colour and the colour camera's pose is used.
+        Runs on the mapper; touches nothing but the object mapper. Boxes are colour pixels, so depth is
+        registered to colour and the colour camera's pose is used.
         """
+        found, timings = detections.result()
+        result = KeyframeObjects(kf, found, timings=dict(timings))
         if self.objects is None:
-            return
+            return result
         t0 = time.perf_counter()
         camera = frame.camera
         depth = depth_in_color(frame.depth_m(), camera, scale=2)
-        body, color_from_body = self.graph.pose(kf), self._color_from_body()
-        self._object_poses.append(body)
-        reclustered = self.objects.add_keyframe(kf, self.keyframe_detections[kf], depth, camera.color.matrix(),
-                                                body @ color_from_body)
+        result.reclustered = self.objects.add_keyframe(kf, found, depth, camera.color.matrix(),
+                                                       body @ color_from_body)
+        to_body = np.linalg.inv(color_from_body)
+        result.observations = [(t, to_body[:3, :3] @ p + to_body[:3, 3], extent)
+                               for t, p, extent in self.objects.last_observations]
+        result.timings["objects"] = time.perf_counter() - t0
+        return result
+
+    def _apply_objects(self) -> None:
+        """Wait for the pending keyframe's object mapping and put it into the map: its detections, its
+        landmark measurements, and after a re-clustering the landmarks' new assignment. A mapping that failed
+        is logged and counted (``mapping_errors``); its keyframe keeps no objects."""
+        if self._pending is None:
+            return
+        future, self._pending = self._pending, None
+        try:
+            result: KeyframeObjects = future.result()
+        except Exception:  # bad input must not stop the pipeline: the keyframe is mapped without objects
+            log.exception("object mapping of a keyframe failed")
+            self.mapping_errors += 1
+            return
+        self.keyframe_detections[result.keyframe] = result.detections
+        self.detections_by_class.update(d.label for d in result.detections)
+        self.timings.update(result.timings)
+        if self.objects is None:
+            return
         if self.landmarks is not None:
-            to_body = np.linalg.inv(color_from_body)
-            self.landmarks.observe(kf, [(t, to_body[:3, :3] @ p + to_body[:3, 3], extent)
-                                        for t, p, extent in self.objects.last_observations])
-            if reclustered:
+            t0 = time.perf_counter()
+            self.landmarks.observe(result.keyframe, result.observations)
+            if result.reclustered:
                 self.landmarks.sync(self.objects.objects)
-        self.object_map_version += reclustered
-        self.timings["objects"] = time.perf_counter() - t0
+            self.timings["landmarks"] = time.perf_counter() - t0
+        self.object_map_version += result.reclustered
+        self._objects_view = list(self.objects.objects)
+
+    def flush(self) -> None:
+        """Finish the latest keyframe's object mapping and apply it (the next keyframe would)."""
+        self._apply_objects()
+
+    def close(self) -> None:
+        """Stop the mapper threads (a pending mapping is finished first)."""
+        self._mapper.shutdown(wait=True)
+        self._detector_pool.shutdown(wait=True)
 
     def _color_from_body(self) -> np.ndarray:
         """The colour camera's pose in the keyframe (depth camera) frame: identity when registered."""
@@ -267,6 +348,7 @@ class Pipeline:
         t0 = time.perf_counter()
         now = self.graph.poses()[:n]
         self.objects.repose(now @ self._color_from_body())
+        self._objects_view = list(self.objects.objects)
         self._object_poses = list(now)
         if self.landmarks is not None:
             self.landmarks.sync(self.objects.objects)
@@ -276,8 +358,10 @@ class Pipeline:
 
     def finish(self) -> None:
         """End of a sequence (``run``): emit the open tracks and re-cluster the objects once more."""
+        self.flush()
         if self.objects is not None and self.records:
             self.objects.finish()
+            self._objects_view = list(self.objects.objects)
             if self.landmarks is not None:
                 self.landmarks.sync(self.objects.objects)
             self.object_map_version += 1
@@ -287,7 +371,7 @@ class Pipeline:
         if self.objects is None:
             return []
         landmarks = self.landmarks.positions() if self.landmarks is not None else {}
-        return [object_json(o, landmarks.get(o.id)) for o in self.objects.objects]
+        return [object_json(o, landmarks.get(o.id)) for o in self._objects_view]
 
     def _get_detector(self):
         if self._detector is None:
@@ -324,7 +408,15 @@ class Pipeline:
         next ``process``.
         """
         r = self.records
+        pending = None
+        if self._pending is not None:  # finished (it reads nothing the next frames change) and kept unapplied
+            try:
+                pending = self._pending.result()
+            except Exception:
+                self._apply_objects()  # logs and counts the failure; nothing is left pending
         return {
+            "pending_objects": pending,
+            "mapping_errors": self.mapping_errors,
             "camera": self._camera,
             "external_odometry": isinstance(self.frontend, ExternalOdometry),
             "frontend": None if self.frontend is None else self.frontend.state(),
@@ -348,9 +440,9 @@ class Pipeline:
         }
 
     @classmethod
-    def from_state(cls, settings: Settings, state: dict[str, Any]) -> Pipeline:
+    def from_state(cls, settings: Settings, state: dict[str, Any], background: bool = False) -> Pipeline:
         """A pipeline that continues from ``state`` (of ``state()``) exactly as the saved one would have."""
-        p = cls(settings)
+        p = cls(settings, background)
         p.graph = PoseGraph.from_state(state["graph"])
         if state["camera"] is not None:
             p._setup(state["camera"], state["external_odometry"])
@@ -374,4 +466,10 @@ class Pipeline:
                 p.landmarks.restore(state["landmarks"])
         p._object_poses = list(state.get("object_poses", p.graph.poses()[:len(p.keyframe_detections)]))
         p.reposes = state.get("reposes", 0)
+        p.mapping_errors = state.get("mapping_errors", 0)
+        if p.objects is not None:
+            p._objects_view = list(p.objects.objects)
+        if state.get("pending_objects") is not None:
+            p._pending = Future()
+            p._pending.set_result(state["pending_objects"])
         return p

@@ -38,6 +38,8 @@ def test_stream_with_odometry_reproduces_it_and_rejects_bad_timestamps():
 def test_provided_detections_bypass_the_detector():
     p = Pipeline(load_settings(None, {"loops": {"source": "off"}}))
     p.process(make_frame(t=1.0))
+    assert p.detections_by_class == {}  # the keyframe's objects are mapped until the next keyframe or flush
+    p.flush()
     assert p._detector is None and p.detections_by_class == {"cup": 1}
 
 
@@ -46,6 +48,7 @@ def test_keyframes_without_detections_run_the_onnx_detector():
     ds = open_dataset(str(REDKITCHEN))
     p = Pipeline(load_settings(None, {"loops": {"source": "off"}}))
     p.process(ds.frame(0))
+    p.flush()
     assert p._detector is not None and "detector" in p.timings
     assert {"chair", "cup"} & set(p.detections_by_class)
 
@@ -63,3 +66,42 @@ def test_objects_are_mapped_near_their_true_boxes_with_the_right_labels():
         same = [t for t in truth if t.label == o["label"]]
         assert same and min(np.linalg.norm(np.asarray(t.center) - o["mean"]) for t in same) < 0.5
         assert np.asarray(o["cov"]).shape == (3, 3) and np.asarray(o["axes"]).shape == (3, 3)
+
+
+def test_object_mapping_in_background_gives_exactly_the_inline_result():
+    ds = open_dataset("synthetic:room?seed=2&frames=300")
+    settings = load_settings(None, {"loops": {"source": "appearance"}})
+    inline, background = Pipeline(settings), Pipeline(settings, background=True)
+    try:
+        for i in range(90):
+            inline.process(ds.frame(i))
+            background.process(ds.frame(i))
+        for p in (inline, background):
+            p.finish()
+        assert background.graph.num_landmarks > 0 and len(background.object_list()) >= 5
+        assert np.array_equal(inline.trajectory().poses, background.trajectory().poses)
+        assert inline.object_list() == background.object_list()
+        assert inline.keyframe_detections.keys() == background.keyframe_detections.keys()
+    finally:
+        background.close()
+
+
+def test_a_failing_object_mapping_is_counted_and_the_pipeline_goes_on(monkeypatch):
+    p = Pipeline(load_settings(None, {"loops": {"source": "off"}}), background=True)
+    try:
+        def broken(*args):
+            raise ValueError("a box the mapper cannot handle")
+
+        monkeypatch.setattr(p.objects, "add_keyframe", broken)
+        for i in range(10):
+            p.process(make_frame(t=1.0 + i, seq=i))
+        p.flush()
+        assert p.mapping_errors == p.graph.num_keyframes >= 2
+        assert len(p.records) == 10 and p.object_list() == []
+        monkeypatch.undo()
+        p.process(make_frame(t=20.0, seq=20))
+        p.process(make_frame(t=30.0, seq=30))
+        p.flush()
+        assert p.mapping_errors == p.graph.num_keyframes - 2 and p.keyframe_detections
+    finally:
+        p.close()
