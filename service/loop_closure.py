@@ -18,7 +18,7 @@ import numpy as np
 
 from graph.geometry import motion_magnitude, pose_to_tum, relative
 from graph.pose_graph import PoseGraph
-from perception.odometry import Features, Rejected, RelativePoseEstimator
+from perception.odometry import Features, Rejected, Relative, RelativePoseEstimator
 from perception.place_recognition import PlaceIndex, global_descriptor
 
 log = logging.getLogger(__name__)
@@ -59,6 +59,15 @@ class KeyframeEntry:
 
 
 @dataclass
+class Verified:
+    """A candidate after geometric verification: its loop record so far, and the relative pose when it
+    passed (None when rejected)."""
+
+    record: dict[str, Any]
+    relative: Relative | None = None
+
+
+@dataclass
 class LoopCloser:
     """Candidates (appearance, and geometric proximity in the current estimate) + geometric verification."""
 
@@ -95,14 +104,21 @@ class LoopCloser:
 
     def add_keyframe(self, entry: KeyframeEntry, rgb: np.ndarray,
                      proposed: list[tuple[int, str, float]] = ()) -> list[dict[str, Any]]:
-        """Store the keyframe, try its candidates, and return the new loop records.
+        """Store the keyframe, try its candidates, and return the new loop records (``verify`` + ``accept``)."""
+        poses = self.graph.poses() if self.config.proximity else None
+        return self.accept(self.verify(entry, rgb, proposed, poses))
 
-        ``proposed`` are candidates from elsewhere (the RL policy: (keyframe, source, score)); they are
-        tried first. The appearance and proximity sources run when ``source`` is appearance or both.
+    def verify(self, entry: KeyframeEntry, rgb: np.ndarray, proposed: list[tuple[int, str, float]] = (),
+               poses: np.ndarray | None = None) -> list[Verified]:
+        """Find the keyframe's candidates and verify each geometrically; then store the keyframe.
+
+        Needs no graph (it can run beside the tracking): ``poses`` are the keyframe estimates the proximity
+        source searches (None: no proximity candidates). ``proposed`` are candidates from elsewhere (the RL
+        policy: (keyframe, source, score)), tried first; the appearance and proximity sources run when
+        ``source`` is appearance or both. ``accept`` then gates them against the graph.
         """
         descriptor = global_descriptor(rgb)
         c = self.config
-        new: list[dict[str, Any]] = []
         candidates = [(i, src, score) for i, src, score in proposed if i in self.keyframes]
         classical = c.source in ("appearance", "both")
         if classical:
@@ -110,27 +126,37 @@ class LoopCloser:
             candidates += [(cand.index, "appearance", cand.similarity) for cand in
                            self.places.query(descriptor, entry.timestamp, c.min_gap_s, c.top_k, c.min_similarity)
                            if cand.index not in tried]
-        if classical and c.proximity:
+        if classical and c.proximity and poses is not None:
             tried = {i for i, _, _ in candidates}
-            candidates += [(i, "proximity", float("nan")) for i in self._nearby(entry) if i not in tried]
-        for index, source, similarity in candidates:
-            new.append(self._try(self.keyframes[index], entry, source, similarity))
-            if new[-1]["accepted"]:
-                break  # one loop per keyframe is enough to pull the graph
+            candidates += [(i, "proximity", float("nan")) for i in self._nearby(entry, poses) if i not in tried]
+        verified = [self._verify(self.keyframes[index], entry, source, similarity)
+                    for index, source, similarity in candidates]
         self.places.add(entry.index, entry.timestamp, descriptor)
         self.keyframes[entry.index] = replace(entry, features=entry.features.with_depth())  # only 3D side kept
+        return verified
+
+    def accept(self, verified: list[Verified]) -> list[dict[str, Any]]:
+        """Gate verified candidates against the graph; the first that agrees becomes a robust loop factor.
+
+        Candidates after an accepted one are not recorded (one loop per keyframe is enough to pull the
+        graph). After an acceptance every accepted loop is re-checked. Returns the new records.
+        """
+        new: list[dict[str, Any]] = []
+        for v in verified:
+            new.append(self._gate(v) if v.relative is not None else dict(v.record))
+            if new[-1]["accepted"]:
+                break
         self.records.extend(new)
         if any(r["accepted"] for r in new):
             self._recheck()
         return new
 
-    def _nearby(self, entry: KeyframeEntry) -> list[int]:
-        """Old keyframes whose current estimate lies near the new one's (geometric candidates)."""
+    def _nearby(self, entry: KeyframeEntry, poses: np.ndarray) -> list[int]:
+        """Old keyframes whose estimate (in ``poses``) lies near the new one's (geometric candidates)."""
         c = self.config
         old = [k for k, e in self.keyframes.items() if e.timestamp <= entry.timestamp - c.min_gap_s]
-        if not old:
+        if not old or entry.index >= len(poses):
             return []
-        poses = self.graph.poses()
         here = poses[entry.index]
         dist = np.linalg.norm(poses[old, :3, 3] - here[:3, 3], axis=1)
         near = []
@@ -142,7 +168,8 @@ class LoopCloser:
                 near.append(old[i])
         return near
 
-    def _try(self, match: KeyframeEntry, query: KeyframeEntry, source: str, similarity: float) -> dict[str, Any]:
+    def _verify(self, match: KeyframeEntry, query: KeyframeEntry, source: str, similarity: float) -> Verified:
+        """PnP-RANSAC between the two keyframes and the viewpoint check; no graph involved."""
         record: dict[str, Any] = {
             "query_t": query.timestamp, "match_t": match.timestamp, "query_frame": query.frame,
             "match_frame": match.frame, "query_keyframe": query.index, "match_keyframe": match.index,
@@ -154,15 +181,21 @@ class LoopCloser:
             rel = self.estimator.estimate(match.features, query.features, self.verify_config)
         except Rejected as exc:
             record.update(reason=exc.reason, matches=exc.matches, inliers=exc.inliers)
-            return record
+            return Verified(record)
         record.update(matches=rel.matches, inliers=rel.inliers, residual_px=round(rel.residual_px, 3))
         dist, angle = motion_magnitude(rel.T_a_b)
         record["relative_pose"] = [round(float(v), 6) for v in pose_to_tum(rel.T_a_b)]
         record.update(distance_m=round(dist, 4), angle_deg=round(math.degrees(angle), 3))
         if dist > self.config.max_loop_m or math.degrees(angle) > self.config.max_loop_deg:
             record["reason"] = "viewpoints_too_far_apart"
-            return record
-        estimate = relative(self.graph.pose(match.index), self.graph.pose(query.index))
+            return Verified(record)
+        return Verified(record, rel)
+
+    def _gate(self, v: Verified) -> dict[str, Any]:
+        """A verified relative pose against the graph's estimate; added as a Huber factor when it agrees."""
+        record, rel = dict(v.record), v.relative
+        a, b = record["match_keyframe"], record["query_keyframe"]
+        estimate = relative(self.graph.pose(a), self.graph.pose(b))
         dt, dr = motion_magnitude(relative(estimate, rel.T_a_b))
         record.update(translation_diff_m=round(dt, 4), rotation_diff_deg=round(math.degrees(dr), 3))
         if dt > self.config.gate_m or math.degrees(dr) > self.config.gate_deg:
@@ -170,10 +203,10 @@ class LoopCloser:
             return record
         sigma_m = max(self.config.sigma_floor_m, rel.sigma_m)
         sigma_deg = max(self.config.sigma_floor_deg, rel.sigma_deg)
-        factor = self.graph.add_loop(match.index, query.index, rel.T_a_b, sigma_m, sigma_deg)
-        self.accepted[factor] = (match.index, query.index, rel.T_a_b)
+        factor = self.graph.add_loop(a, b, rel.T_a_b, sigma_m, sigma_deg)
+        self.accepted[factor] = (a, b, rel.T_a_b)
         record.update(accepted=True, reason="verified", factor=factor)
-        log.info("loop closure accepted: keyframe %d <-> %d (%d inliers)", match.index, query.index, rel.inliers)
+        log.info("loop closure accepted: keyframe %d <-> %d (%d inliers)", a, b, rel.inliers)
         return record
 
     def _recheck(self) -> None:

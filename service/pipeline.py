@@ -11,7 +11,7 @@ import math
 import time
 from collections import Counter
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -26,7 +26,7 @@ from perception.odometry import FeatureExtractor, OdometryConfig, RelativePoseEs
 from perception.registration import backproject, depth_in_color
 from rl.proposer import PolicyProposer
 from service.config import Settings
-from service.loop_closure import KeyframeEntry, LoopCloser, LoopConfig
+from service.loop_closure import KeyframeEntry, LoopCloser, LoopConfig, Verified
 from service.protocol import FrameRejected, Reason
 from service.sources.base import Trajectory
 
@@ -53,6 +53,7 @@ class KeyframeObjects:
     detections: list[Detection]
     observations: list[tuple[int, np.ndarray, float]] = field(default_factory=list)  # (track, body-frame p, extent)
     reclustered: bool = False
+    reposed: bool = False
     timings: dict[str, float] = field(default_factory=dict)
 
 
@@ -114,11 +115,11 @@ class Pipeline:
 
     def __init__(self, settings: Settings, background: bool = False):
         self.settings = settings
-        self._mapper: Executor = ThreadPoolExecutor(1, thread_name_prefix="objslam-mapper") if background \
-            else InlineExecutor()
-        self._detector_pool: Executor = ThreadPoolExecutor(1, thread_name_prefix="objslam-detector") \
-            if background else self._mapper
-        self._pending: Future | None = None  # the latest keyframe's object mapping, not yet applied
+        def pool(name: str) -> Executor:
+            return ThreadPoolExecutor(1, thread_name_prefix=f"objslam-{name}") if background else InlineExecutor()
+
+        self._pools = {"detector": pool("detector"), "objects": pool("objects"), "loops": pool("loops")}
+        self._pending: dict[str, Future] = {}  # the latest keyframe's mapping jobs ("objects", "loops"), unapplied
         self._objects_view: list = []  # the objects as of the last applied mapping (read by object_list)
         self.mapping_errors = 0
         self.graph = PoseGraph(from_settings(NoiseSettings, settings.graph))
@@ -209,15 +210,8 @@ class Pipeline:
                     self.graph.add_between(kf - back, kf, T, sigma_m, sigma_deg)
         self._kf_odometry.append(step.pose)
         self._kf_points.append(map_points(frame))
-        self._apply_objects()
-        if self.loops is not None:
-            t0 = time.perf_counter()
-            features = step.features if step.features is not None else self._extractor.extract(frame)
-            policy = self._policy_candidates(kf)
-            self.loops.add_keyframe(KeyframeEntry(kf, frame.timestamp, frame.seq, features), frame.rgb, policy)
-            self.timings["loop_closure"] = time.perf_counter() - t0
-        self._repose_objects()
-        self._submit_objects(kf, frame)
+        self._apply_mapping()
+        self._submit_mapping(kf, frame, step)
         return FrameRecord(frame.timestamp, frame.seq, kf, True, step.pose, np.eye(4))
 
     def _policy_candidates(self, kf: int) -> list[tuple[int, str, float]]:
@@ -240,20 +234,32 @@ class Pipeline:
                  for k, pts in enumerate(self._kf_points[:len(poses)])]
         return np.concatenate(parts)
 
-    def _submit_objects(self, kf: int, frame: Frame) -> None:
-        """Start mapping keyframe ``kf``'s objects: detection (SPEC 6.1) on its own thread, so the detector of
-        this keyframe runs while the previous one is still being associated, then association and clustering.
-        Inputs are taken now (the keyframe's pose as estimated at this point)."""
+    # ------------------------------------------------------------ keyframe mapping (objects, loop closure)
+
+    def _submit_mapping(self, kf: int, frame: Frame, step: Step) -> None:
+        """Start mapping keyframe ``kf`` beside the tracking of the next frames.
+
+        Objects: detection (SPEC 6.1, its own thread, so this keyframe's detector runs while the previous
+        one is still being associated), then re-posing when due, NPDA and clustering. Loop closure: features,
+        candidates and their geometric verification. Everything they read from the graph is taken now.
+        """
         detections: Future
         if frame.detections is None and self.settings.detector.enabled:
-            detections = self._detector_pool.submit(self._detect, frame.rgb)
+            detections = self._pools["detector"].submit(self._detect, frame.rgb)
         else:
             detections = Future()
             detections.set_result((frame.detections or [], {}))
+        reposed = self._repose_due()
         body, color_from_body = self.graph.pose(kf), self._color_from_body()
         if self.objects is not None:
             self._object_poses.append(body)
-        self._pending = self._mapper.submit(self._map_objects, kf, frame, detections, body, color_from_body)
+        self._pending["objects"] = self._pools["objects"].submit(
+            self._map_objects, kf, frame, detections, body, color_from_body, reposed)
+        if self.loops is not None:
+            entry = KeyframeEntry(kf, frame.timestamp, frame.seq, step.features)
+            poses = self.graph.poses() if self.loops.config.proximity else None
+            self._pending["loops"] = self._pools["loops"].submit(
+                self._verify_loops, entry, frame, self._policy_candidates(kf), poses)
 
     def _detect(self, rgb: np.ndarray) -> tuple[list[Detection], dict[str, float]]:
         t0 = time.perf_counter()
@@ -261,16 +267,22 @@ class Pipeline:
         return detections, {"detector": time.perf_counter() - t0}
 
     def _map_objects(self, kf: int, frame: Frame, detections: Future, body: np.ndarray,
-                     color_from_body: np.ndarray) -> KeyframeObjects:
+                     color_from_body: np.ndarray, reposed: np.ndarray | None) -> KeyframeObjects:
         """Associate the keyframe's detections, extend tracks and re-cluster objects (Sec. 2.4, SPEC 6.2-6.7).
 
-        Runs on the mapper; touches nothing but the object mapper. Boxes are colour pixels, so depth is
-        registered to colour and the colour camera's pose is used.
+        On its own thread; touches nothing but the object mapper. ``reposed``: new poses of the earlier
+        keyframes to recompute the feature vectors from first (Sec. 2.4.7). Boxes are colour pixels, so
+        depth is registered to colour and the colour camera's pose is used.
         """
         found, timings = detections.result()
         result = KeyframeObjects(kf, found, timings=dict(timings))
         if self.objects is None:
             return result
+        if reposed is not None:
+            t0 = time.perf_counter()
+            self.objects.repose(reposed @ color_from_body)
+            result.reposed = True
+            result.timings["repose"] = time.perf_counter() - t0
         t0 = time.perf_counter()
         camera = frame.camera
         depth = depth_in_color(frame.depth_m(), camera, scale=2)
@@ -282,19 +294,40 @@ class Pipeline:
         result.timings["objects"] = time.perf_counter() - t0
         return result
 
-    def _apply_objects(self) -> None:
-        """Wait for the pending keyframe's object mapping and put it into the map: its detections, its
-        landmark measurements, and after a re-clustering the landmarks' new assignment. A mapping that failed
-        is logged and counted (``mapping_errors``); its keyframe keeps no objects."""
-        if self._pending is None:
-            return
-        future, self._pending = self._pending, None
+    def _verify_loops(self, entry: KeyframeEntry, frame: Frame, proposed: list[tuple[int, str, float]],
+                      poses: np.ndarray | None) -> tuple[list[Verified], dict[str, float]]:
+        """Loop-closure candidates of a keyframe, verified geometrically (on its own thread, no graph)."""
+        t0 = time.perf_counter()
+        if entry.features is None:
+            entry = replace(entry, features=self._extractor.extract(frame))
+        verified = self.loops.verify(entry, frame.rgb, proposed, poses)
+        return verified, {"loop_closure": time.perf_counter() - t0}
+
+    def _apply_mapping(self) -> None:
+        """Wait for the latest keyframe's mapping and put it into the map: its detections and landmark
+        measurements, the landmarks' new assignment after a re-clustering or re-posing, then its loop
+        closures (gated against the graph). A job that failed is logged and counted (``mapping_errors``):
+        its keyframe keeps no objects or loops."""
+        pending, self._pending = self._pending, {}
+        objects, loops = (self._result(pending[name]) if name in pending else None for name in ("objects", "loops"))
+        if objects is not None:
+            self._apply_objects(objects)
+        if loops is not None:
+            verified, timings = loops
+            self.timings.update(timings)
+            t0 = time.perf_counter()
+            self.loops.accept(verified)
+            self.timings["loop_accept"] = time.perf_counter() - t0
+
+    def _result(self, future: Future):
         try:
-            result: KeyframeObjects = future.result()
-        except Exception:  # bad input must not stop the pipeline: the keyframe is mapped without objects
-            log.exception("object mapping of a keyframe failed")
+            return future.result()
+        except Exception:  # bad input must not stop the pipeline: the keyframe is mapped without it
+            log.exception("mapping a keyframe failed")
             self.mapping_errors += 1
-            return
+            return None
+
+    def _apply_objects(self, result: KeyframeObjects) -> None:
         self.keyframe_detections[result.keyframe] = result.detections
         self.detections_by_class.update(d.label for d in result.detections)
         self.timings.update(result.timings)
@@ -303,20 +336,20 @@ class Pipeline:
         if self.landmarks is not None:
             t0 = time.perf_counter()
             self.landmarks.observe(result.keyframe, result.observations)
-            if result.reclustered:
+            if result.reclustered or result.reposed:
                 self.landmarks.sync(self.objects.objects)
             self.timings["landmarks"] = time.perf_counter() - t0
-        self.object_map_version += result.reclustered
+        self.object_map_version += int(result.reclustered) + int(result.reposed)
         self._objects_view = list(self.objects.objects)
 
     def flush(self) -> None:
-        """Finish the latest keyframe's object mapping and apply it (the next keyframe would)."""
-        self._apply_objects()
+        """Finish the latest keyframe's mapping and apply it (the next keyframe would)."""
+        self._apply_mapping()
 
     def close(self) -> None:
-        """Stop the mapper threads (a pending mapping is finished first)."""
-        self._mapper.shutdown(wait=True)
-        self._detector_pool.shutdown(wait=True)
+        """Stop the mapping threads (running jobs are finished first)."""
+        for executor in self._pools.values():
+            executor.shutdown(wait=True)
 
     def _color_from_body(self) -> np.ndarray:
         """The colour camera's pose in the keyframe (depth camera) frame: identity when registered."""
@@ -325,15 +358,15 @@ class Pipeline:
             return np.eye(4)
         return np.linalg.inv(camera.depth_to_color)
 
-    def _repose_objects(self) -> None:
-        """Sec. 2.4.7: after an optimisation, recompute the feature vectors from the updated poses and re-cluster.
-
-        Done when some keyframe holding object observations has moved by more than ``repose_m`` or turned
-        by more than ``repose_deg`` since its observations were placed; smaller corrections are below the
-        objects' own noise and re-clustering every keyframe would cost ~50 ms each.
+    def _repose_due(self) -> np.ndarray | None:
+        """Sec. 2.4.7: after an optimisation, the feature vectors are recomputed from the updated poses and the
+        objects re-clustered. Due when some keyframe holding object observations has moved by more than
+        ``repose_m`` or turned by more than ``repose_deg`` since its observations were placed (smaller
+        corrections are below the objects' own noise and re-clustering every keyframe would cost ~50 ms
+        each); then the poses to re-place them with, else None.
         """
         if self.objects is None or not self._object_poses:
-            return
+            return None
         n = len(self._object_poses)
         # at most ~110 keyframes checked (every n/100-th and the last 10): an optimisation that matters moves
         # many keyframes together, and a full estimate per keyframe would grow with the map
@@ -344,17 +377,11 @@ class Pipeline:
         turned = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))).max()
         cfg = self.settings.objects
         if moved <= cfg.repose_m and turned <= cfg.repose_deg:
-            return
-        t0 = time.perf_counter()
+            return None
         now = self.graph.poses()[:n]
-        self.objects.repose(now @ self._color_from_body())
-        self._objects_view = list(self.objects.objects)
         self._object_poses = list(now)
-        if self.landmarks is not None:
-            self.landmarks.sync(self.objects.objects)
         self.reposes += 1
-        self.object_map_version += 1
-        self.timings["repose"] = time.perf_counter() - t0
+        return now
 
     def finish(self) -> None:
         """End of a sequence (``run``): emit the open tracks and re-cluster the objects once more."""
@@ -408,14 +435,16 @@ class Pipeline:
         next ``process``.
         """
         r = self.records
-        pending = None
-        if self._pending is not None:  # finished (it reads nothing the next frames change) and kept unapplied
+        pending = {}
+        for name, future in self._pending.items():  # finished (they read nothing later frames change), unapplied
             try:
-                pending = self._pending.result()
+                pending[name] = future.result()
             except Exception:
-                self._apply_objects()  # logs and counts the failure; nothing is left pending
+                self._apply_mapping()  # logs and counts the failure; applies the rest
+                pending = {}
+                break
         return {
-            "pending_objects": pending,
+            "pending_mapping": pending,
             "mapping_errors": self.mapping_errors,
             "camera": self._camera,
             "external_odometry": isinstance(self.frontend, ExternalOdometry),
@@ -469,7 +498,7 @@ class Pipeline:
         p.mapping_errors = state.get("mapping_errors", 0)
         if p.objects is not None:
             p._objects_view = list(p.objects.objects)
-        if state.get("pending_objects") is not None:
-            p._pending = Future()
-            p._pending.set_result(state["pending_objects"])
+        for name, result in state.get("pending_mapping", {}).items():
+            p._pending[name] = Future()
+            p._pending[name].set_result(result)
         return p
