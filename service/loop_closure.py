@@ -115,7 +115,8 @@ class LoopCloser:
         Needs no graph (it can run beside the tracking): ``poses`` are the keyframe estimates the proximity
         source searches (None: no proximity candidates). ``proposed`` are candidates from elsewhere (the RL
         policy: (keyframe, source, score)), tried first; the appearance and proximity sources run when
-        ``source`` is appearance or both. ``accept`` then gates them against the graph.
+        ``source`` is appearance or both. Candidates are verified in this order until one passes; ``accept``
+        then gates it against the graph.
         """
         descriptor = global_descriptor(rgb)
         c = self.config
@@ -129,8 +130,11 @@ class LoopCloser:
         if classical and c.proximity and poses is not None:
             tried = {i for i, _, _ in candidates}
             candidates += [(i, "proximity", float("nan")) for i in self._nearby(entry, poses) if i not in tried]
-        verified = [self._verify(self.keyframes[index], entry, source, similarity)
-                    for index, source, similarity in candidates]
+        verified = []
+        for index, source, similarity in candidates:
+            verified.append(self._verify(self.keyframes[index], entry, source, similarity))
+            if verified[-1].relative is not None:
+                break  # one loop per keyframe is enough; the graph's gate decides on this one in ``accept``
         self.places.add(entry.index, entry.timestamp, descriptor)
         self.keyframes[entry.index] = replace(entry, features=entry.features.with_depth())  # only 3D side kept
         return verified
