@@ -107,18 +107,20 @@ class Pipeline:
     (4) loop-closure candidates of the keyframe are verified and accepted ones become robust factors;
     (5) every frame is recorded relative to its keyframe, so the full trajectory follows the graph.
 
-    Object mapping of a keyframe (detector when the frame has no detections, NPDA, tracks, clustering) runs
-    on ``mapper`` while the next frames are tracked; its landmark measurements enter the graph when the next
-    keyframe is added (or on ``flush``). That point is fixed, so the result is the same whether ``mapper``
-    is a background thread (``background=True``, the service) or runs each job at once (``run``, tests).
+    The mapping of a keyframe (object detection when the frame has none, NPDA, tracks, clustering; loop
+    candidates and their geometric verification) runs on a mapping thread while the next frames are
+    tracked; its landmark measurements and loop factors enter the graph when the next keyframe is added (or
+    on ``flush``). That point is fixed and the jobs read only what they were given, so the result is the
+    same with the thread (``background=True``, the service) or with each job run at once (tests).
     """
 
     def __init__(self, settings: Settings, background: bool = False):
         self.settings = settings
-        def pool(name: str) -> Executor:
-            return ThreadPoolExecutor(1, thread_name_prefix=f"objslam-{name}") if background else InlineExecutor()
-
-        self._pools = {"detector": pool("detector"), "objects": pool("objects"), "loops": pool("loops")}
+        # One mapping thread, jobs in submission order: a keyframe's detection, then its objects, then its loop
+        # verification. More threads measured worse: they compete with ingest and queries for the GIL and
+        # the two cores (status p99 under overload 125-140 ms with three, 93 ms with one).
+        self._mapping: Executor = ThreadPoolExecutor(1, thread_name_prefix="objslam-mapping") if background \
+            else InlineExecutor()
         self._pending: dict[str, Future] = {}  # the latest keyframe's mapping jobs ("objects", "loops"), unapplied
         self._objects_view: list = []  # the objects as of the last applied mapping (read by object_list)
         self.mapping_errors = 0
@@ -239,13 +241,12 @@ class Pipeline:
     def _submit_mapping(self, kf: int, frame: Frame, step: Step) -> None:
         """Start mapping keyframe ``kf`` beside the tracking of the next frames.
 
-        Objects: detection (SPEC 6.1, its own thread, so this keyframe's detector runs while the previous
-        one is still being associated), then re-posing when due, NPDA and clustering. Loop closure: features,
+        Objects: detection (SPEC 6.1), then re-posing when due, NPDA and clustering. Loop closure: features,
         candidates and their geometric verification. Everything they read from the graph is taken now.
         """
         detections: Future
         if frame.detections is None and self.settings.detector.enabled:
-            detections = self._pools["detector"].submit(self._detect, frame.rgb)
+            detections = self._mapping.submit(self._detect, frame.rgb)
         else:
             detections = Future()
             detections.set_result((frame.detections or [], {}))
@@ -253,12 +254,12 @@ class Pipeline:
         body, color_from_body = self.graph.pose(kf), self._color_from_body()
         if self.objects is not None:
             self._object_poses.append(body)
-        self._pending["objects"] = self._pools["objects"].submit(
+        self._pending["objects"] = self._mapping.submit(
             self._map_objects, kf, frame, detections, body, color_from_body, reposed)
         if self.loops is not None:
             entry = KeyframeEntry(kf, frame.timestamp, frame.seq, step.features)
             poses = self.graph.poses() if self.loops.config.proximity else None
-            self._pending["loops"] = self._pools["loops"].submit(
+            self._pending["loops"] = self._mapping.submit(
                 self._verify_loops, entry, frame, self._policy_candidates(kf), poses)
 
     def _detect(self, rgb: np.ndarray) -> tuple[list[Detection], dict[str, float]]:
@@ -348,8 +349,7 @@ class Pipeline:
 
     def close(self) -> None:
         """Stop the mapping threads (running jobs are finished first)."""
-        for executor in self._pools.values():
-            executor.shutdown(wait=True)
+        self._mapping.shutdown(wait=True)
 
     def _color_from_body(self) -> np.ndarray:
         """The colour camera's pose in the keyframe (depth camera) frame: identity when registered."""

@@ -40,8 +40,8 @@ def run_stages_bench(console: Console, dataset: str, frames: int | None, write: 
              f"{every}th frame (the run's keyframe spacing) with its ground-truth odometry, each made a keyframe, "
              "through the pipeline (detector, NPDA, tracks, clustering, landmarks into iSAM2; loop closure off): "
              "keyframes / wall time, the frames decoded beforehand; 'one thread' runs each keyframe's mapping "
-             "at once, 'service threads' as `serve` does (the detector of a keyframe beside the association of "
-             f"the previous one): **{rates[True]:.1f} keyframes/s** on the service threads (target >= 10), "
+             "at once, 'service threads' as `serve` does (on the mapping thread, beside the tracking of the next "
+             f"frames): **{rates[True]:.1f} keyframes/s** on the service threads (target >= 10), "
              f"{rates[False]:.1f} in one thread.")
     name = Path(dataset).name or dataset
     record("stages", f"Pipeline stage cost ({name})",

@@ -97,7 +97,8 @@ def run_throughput(console: Console, dataset: str, frames: int, write: Path | No
     show_table(console, "replay-to-graph throughput and latency (zenoh, serve subprocess)", header, rows)
     notes = ("Frames are rendered and encoded (JPEG colour, 16-bit PNG depth) before timing and carry odometry and "
              "detections; `objslam serve` runs the default configuration (decode on its own thread; validation, "
-             "keyframing, iSAM2, object association and clustering, appearance loop closure on the worker) in a "
+             "keyframing and iSAM2 on the worker; object association and clustering and loop verification of each "
+             "keyframe on the mapping thread, applied at the next keyframe) in a "
              "subprocess behind a zenoh router in this process. Max rate: all frames published at once into a queue "
              "that holds them all; throughput = frames / (first publish to last frame in the graph). Latency: a fresh "
              f"service fed the same frames at {CAMERA_HZ:.0f} frames/s; ingest-to-graph = arrival in the subscriber "
