@@ -37,7 +37,7 @@ from service.stats import ServiceStats
 
 log = logging.getLogger(__name__)
 
-SWITCH_INTERVAL_S = float(__import__("os").environ.get("SWI", "0.001"))
+SWITCH_INTERVAL_S = 0.001
 
 
 @dataclass(frozen=True)
@@ -85,9 +85,9 @@ class ServiceNode:
 
     def start(self) -> None:
         """Declare the subscriber, queryables and events publisher, and start the worker."""
-        # Up to five Python threads (decoder, worker, object mapping, loop verification, zenoh callbacks) share
-        # the GIL; a query waits for it in steps of the switch interval: 0.5 ms rather than Python's 5 ms (status
-        # p99 under 3x overload 75 ms; 1 ms: 93-104, 5 ms: 101; frames/s under overload 7.7 vs 8.6-9.4).
+        # Four Python threads (zenoh callbacks, decoder, worker, mapping) share the GIL and a query waits for it
+        # in steps of the switch interval: 1 ms rather than Python's 5 ms (`objslam bench overload`: status p99
+        # 83-104 ms at 1 ms, 101 at 5 ms; 0.5 ms answered faster but processed fewer frames).
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         s, p = self.session, self.prefix
         self._entities.append(s.declare_subscriber(f"{p}/rgbd", self._on_frame))
