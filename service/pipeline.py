@@ -19,9 +19,9 @@ from pydantic import BaseModel
 
 from graph.object_landmarks import LandmarkConfig, ObjectLandmarks
 from graph.pose_graph import NoiseSettings, PoseGraph
+from perception.clustering import ObjectEllipsoid
 from perception.frame import CameraModel, Detection, Frame
 from perception.frontend import ExternalOdometry, KeyframePolicy, Step, VisualOdometry
-from perception.clustering import ObjectEllipsoid
 from perception.object_map import ObjectMapper, object_json
 from perception.odometry import FeatureExtractor, OdometryConfig, RelativePoseEstimator
 from perception.registration import backproject, depth_in_color
@@ -66,7 +66,7 @@ class KeyframeObjects:
 
 
 class InlineExecutor(Executor):
-    """Runs each task at once in the caller's thread (``run`` and tests: the same results as in background)."""
+    """Runs each task at once in the caller's thread (tests, benchmarks: the same results as the thread)."""
 
     def submit(self, fn, /, *args, **kwargs) -> Future:
         future: Future = Future()
@@ -118,8 +118,8 @@ class Pipeline:
     The mapping of a keyframe (object detection when the frame has none, NPDA, tracks, clustering; loop
     candidates and their geometric verification) runs on a mapping thread while the next frames are
     tracked; its landmark measurements and loop factors enter the graph when the keyframe ``MAPPING_LAG``
-    later is added (or on ``flush``). That point is fixed and the jobs read only what they were given, so the result is the
-    same with the thread (``background=True``, the service) or with each job run at once (tests).
+    later is added (or on ``flush``). That point is fixed and the jobs read only what they were given, so
+    the result is the same with the thread (``background=True``, the service) or with each job run at once.
     """
 
     def __init__(self, settings: Settings, background: bool = False):
@@ -281,7 +281,7 @@ class Pipeline:
                      color_from_body: np.ndarray, reposed: np.ndarray | None) -> KeyframeObjects:
         """Associate the keyframe's detections, extend tracks and re-cluster objects (Sec. 2.4, SPEC 6.2-6.7).
 
-        On its own thread; touches nothing but the object mapper. ``reposed``: new poses of the earlier
+        On the mapping thread; touches nothing but the object mapper. ``reposed``: new poses of the earlier
         keyframes to recompute the feature vectors from first (Sec. 2.4.7). Boxes are colour pixels, so
         depth is registered to colour and the colour camera's pose is used.
         """
@@ -308,7 +308,7 @@ class Pipeline:
 
     def _verify_loops(self, entry: KeyframeEntry, frame: Frame, proposed: list[tuple[int, str, float]],
                       poses: np.ndarray | None) -> tuple[list[Verified], dict[str, float]]:
-        """Loop-closure candidates of a keyframe, verified geometrically (on its own thread, no graph)."""
+        """Loop-closure candidates of a keyframe, verified geometrically (on the mapping thread, no graph)."""
         t0 = time.perf_counter()
         if entry.features is None:
             entry = replace(entry, features=self._extractor.extract(frame))
@@ -362,7 +362,7 @@ class Pipeline:
             self._apply_mapping()
 
     def close(self) -> None:
-        """Stop the mapping threads (running jobs are finished first)."""
+        """Stop the mapping thread (submitted jobs are finished first)."""
         self._mapping.shutdown(wait=True)
 
     def _color_from_body(self) -> np.ndarray:
