@@ -7,6 +7,7 @@ how much of the growth measured by `objslam bench isam2` is gtsam's own.
 
 import sys
 import time
+from importlib.metadata import version
 
 import gtsam
 import numpy as np
@@ -53,7 +54,7 @@ def service_graph(n: int) -> tuple[float, float, float]:
 if __name__ == "__main__":
     n = int(sys.argv[1]) if len(sys.argv) > 1 else 10000
     a, b = chain(n)
-    print(f"gtsam {gtsam.__version__ if hasattr(gtsam, '__version__') else '?'} numpy {np.__version__}")
+    print(f"gtsam {version('gtsam')} numpy {np.__version__}")
     print(f"odometry chain: update {a:.3f} ms around 1000 poses, {b:.3f} ms at {n}: ratio {b / a:.2f}")
     if "--service" in sys.argv:
         s, l, ratio = service_graph(n)
