@@ -8,7 +8,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from service.bench.report import markdown_table, record, show_table
+from service.bench.report import StealMeter, markdown_table, record, show_table
 from service.config import load_settings
 from service.pipeline import Pipeline
 from service.run import run_dataset
@@ -19,7 +19,7 @@ STAGES = ("decode", "frontend", "detector", "objects", "loop_closure", "graph", 
 
 def run_stages_bench(console: Console, dataset: str, frames: int | None, write: Path | None) -> dict:
     """Run the service end to end (own odometry, detector when the data has no detections) and tabulate stages."""
-    data = WithoutOdometry(open_dataset(dataset))
+    data, steal = WithoutOdometry(open_dataset(dataset)), StealMeter()
     with tempfile.TemporaryDirectory() as tmp:
         summary = run_dataset(data, Path(tmp), load_settings(), max_frames=frames, progress=False)
     lat = summary["latency"]
@@ -42,7 +42,8 @@ def run_stages_bench(console: Console, dataset: str, frames: int | None, write: 
              "keyframes / wall time, the frames decoded beforehand; 'one thread' runs each keyframe's mapping "
              "at once, 'service threads' as `serve` does (on the mapping thread, beside the tracking of the next "
              f"frames): **{rates[True]:.1f} keyframes/s** on the service threads (target >= 10), "
-             f"{rates[False]:.1f} in one thread.")
+             f"{rates[False]:.1f} in one thread. CPU time stolen by the hypervisor during the runs: "
+             f"{steal.percent():.1f} %.")
     name = Path(dataset).name or dataset
     record("stages", f"Pipeline stage cost ({name})",
            f"objslam bench stages --dataset {dataset}" + (f" --frames {frames}" if frames else ""),

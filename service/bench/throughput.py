@@ -13,7 +13,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from service.bench.report import load_note, markdown_table, record, show_table
+from service.bench.report import StealMeter, load_note, markdown_table, record, show_table
 from service.bench.rig import free_port, query_status, router, start_serve, stop_serve, wait_for_status
 from service.protocol import encode_frame
 from service.replay import frame_publisher
@@ -57,14 +57,14 @@ def measure(dataset: str, frames: int) -> dict:
     data = open_dataset(dataset)
     frames = min(frames, len(data))
     payloads = [encode_frame(data.frame(i)) for i in range(frames)]
-    load = [os.getloadavg()[0]]
+    load, steal = [os.getloadavg()[0]], StealMeter()
     status, published, elapsed = _serve_and_publish(payloads, None)
     load.append(os.getloadavg()[0])
     paced, _, _ = _serve_and_publish(payloads, CAMERA_HZ)
     load.append(os.getloadavg()[0])
     lat, plat = status["latency"], paced["latency"]
     return {"dataset": dataset, "frames": frames, "resolution": f"{data.camera.width}x{data.camera.height}",
-            "publish_fps": frames / published, "processed": status["frames_processed"],
+            "steal": steal.percent(), "publish_fps": frames / published, "processed": status["frames_processed"],
             "dropped": status["frames_dropped"], "keyframes": status["keyframes"],
             "throughput_fps": status["frames_processed"] / elapsed, "decode": lat["decode"], "graph": lat["graph"],
             "paced_graph": plat["graph"], "paced_latency": plat["ingest_to_graph"],
@@ -93,6 +93,7 @@ def run_throughput(console: Console, dataset: str, frames: int, write: Path | No
         [f"**at {CAMERA_HZ:.0f} frames/s: ingest-to-graph latency p50 / p95 (ms)**",
          f"**{_p(r['paced_latency'])}**", f"p95 <= {LATENCY_P95_TARGET_MS:.0f}"],
         ["machine load average during the runs (2 cores, shared)", f"{r['load']:.1f}", ""],
+        ["CPU time stolen by the hypervisor during the runs (%)", f"{r['steal']:.1f}", ""],
     ]
     show_table(console, "replay-to-graph throughput and latency (zenoh, serve subprocess)", header, rows)
     notes = ("Frames are rendered and encoded (JPEG colour, 16-bit PNG depth) before timing and carry odometry and "
