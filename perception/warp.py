@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 
+import cv2
 import numpy as np
 
 from graph.geometry import motion_magnitude
@@ -38,7 +39,7 @@ def warp_depth(depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, splat:
 
     Each point lands on its nearest pixel (``splat=2``: on the 2x2 pixels around it, which closes the
     one-pixel cracks of magnified surfaces); where several land on one pixel the nearest wins
-    (``np.minimum.at``). Pixels nothing lands on are NaN. ``step=2`` warps every second pixel of every second
+    (``np.minimum.at``, then a 2x2 minimum filter for the splat). Pixels nothing lands on are NaN. ``step=2`` warps every second pixel of every second
     row and splats each onto 2x2 pixels: four times fewer points, for consumers that sample boxes.
     """
     h, w = depth_m.shape
@@ -60,22 +61,24 @@ def warp_depth(depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, splat:
     u = np.float32(K[0, 0]) * x / z + np.float32(K[0, 2])
     v = np.float32(K[1, 1]) * y / z + np.float32(K[1, 2])
     # z-buffer on the image padded by one pixel on each side: a point whose splat reaches the image is kept
-    # once (not its four splat positions tested one by one), and positions in the padding are cropped.
+    # once, and positions in the padding are cropped. A 2x2 splat is the one-pixel z-buffer at the floor of
+    # each point followed by a 2x2 minimum filter (each pixel takes the nearest of the points whose 2x2 splat
+    # covers it), four times fewer scattered writes than writing the four positions.
     pw = w + 2
     if splat == 2:
         ui, vi = np.floor(u), np.floor(v)
         near = (ui >= -1) & (ui < w) & (vi >= -1) & (vi < h)
-        base = (vi[near].astype(np.int64) + 1) * pw + ui[near].astype(np.int64) + 1
-        index = np.concatenate([base, base + 1, base + pw, base + pw + 1])
-        depth = np.tile(z[near], 4)
     else:
         ui, vi = np.rint(u), np.rint(v)
-        inside = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
-        index = (vi[inside].astype(np.int64) + 1) * pw + ui[inside].astype(np.int64) + 1
-        depth = z[inside]
+        near = (ui >= 0) & (ui < w) & (vi >= 0) & (vi < h)
+    index = (vi[near].astype(np.int64) + 1) * pw + ui[near].astype(np.int64) + 1
     out = np.full((h + 2) * pw, np.inf, dtype=np.float32)
-    np.minimum.at(out, index, depth)
-    out = out.reshape(h + 2, pw)[1:h + 1, 1:w + 1]
+    np.minimum.at(out, index, z[near])
+    out = out.reshape(h + 2, pw)
+    if splat == 2:  # pixel (r, c) of the padded image takes the minimum over (r-1..r, c-1..c)
+        out = cv2.erode(out, np.ones((2, 2), np.uint8), anchor=(1, 1), borderType=cv2.BORDER_CONSTANT,
+                        borderValue=np.inf)
+    out = out[1:h + 1, 1:w + 1]
     out[np.isinf(out)] = np.nan
     return out
 
