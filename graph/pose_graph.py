@@ -146,7 +146,14 @@ class PoseGraph(Landmarks):
         if not self.num_keyframes:
             return np.zeros((0, 4, 4))
         estimate = self._current()
-        return np.stack([estimate.atPose3(X(k)).matrix() for k in range(self.num_keyframes)])
+        rows = gtsam.utilities.extractPose3(estimate)  # (K, 12): rotation row-major, translation; in key order
+        if len(rows) != self.num_keyframes:  # never expected (the keyframes are the only Pose3 values)
+            return np.stack([estimate.atPose3(X(k)).matrix() for k in range(self.num_keyframes)])
+        out = np.zeros((len(rows), 4, 4))
+        out[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+        out[:, :3, 3] = rows[:, 9:]
+        out[:, 3, 3] = 1.0
+        return out
 
     def marginal_covariance(self, k: int) -> np.ndarray:
         """6x6 marginal covariance of keyframe ``k`` (rotation, translation), from iSAM2's Bayes tree."""
