@@ -34,6 +34,13 @@ policies also closed "loops" on first visits. The environment reports that memor
 logits) trained at every step with binary cross-entropy against it, weighted by ``aux_coef`` and added
 to the PPO loss. The gradient reaches the encoder and LSTM, not the policy head, which the PPO objective
 alone trains; the critic is unchanged. Acting, the ONNX export and evaluation never use the aux head.
+``aux_targets="visited+here+due"`` adds, per location, "the agent stands on it" and "a loop closure is due
+there" (= here and visited) to the aux head's targets: the recognition of the location and the conjunction
+a linear policy head needs, as features of the LSTM output (on maps with many locations the visit memory
+alone was not learned). The policy head is still trained by the PPO objective only.
+
+``init_from`` copies the parameters of another checkpoint whose shapes match (encoder, LSTM; heads only
+when the number of locations is the same): a curriculum from a smaller map.
 """
 
 from __future__ import annotations
@@ -81,6 +88,8 @@ class TrainConfig:
     ent_coef_final: float = 0.005  # ... annealed linearly to this over total_steps
     vf_coef: float = 0.5  # critic loss weight
     aux_coef: float = 0.3  # auxiliary visit-memory loss of the actor (see module doc); 0 = off, no aux head
+    aux_targets: str = "visited"  # "visited" (n_loops bits) or "visited+here+due" (3 x n_loops bits; see module doc)
+    init_from: str = ""  # checkpoint whose parameters of matching shape initialise the networks (curriculum)
     max_grad_norm: float = 0.5  # per network
     reward_scale: float = 0.01  # rewards (+-100, +10, -500) are scaled for learning; curves report them unscaled
     hidden: int = 128  # LSTM cell size
@@ -94,6 +103,10 @@ class TrainConfig:
     @property
     def rollout(self) -> int:
         return self.b2 if self.batch == "entropy" else self.n_steps
+
+
+# aux_targets -> aux logits: (per location, extra); "visited+place+action" adds two (n_loops + 1)-way classifiers
+AUX_TARGETS = {"visited": (1, 0), "visited+here+due": (3, 0), "visited+place+action": (3, 2)}
 
 
 def batch_length(targets: np.ndarray, n_actions: int, b1: int, b2: int) -> int:
@@ -121,6 +134,7 @@ class Buffer:
     dones: np.ndarray
     targets: np.ndarray
     at_loop: np.ndarray  # the agent stood on a loop-closure location
+    loop: np.ndarray  # the location's index, -1 for none
     visited: np.ndarray  # (T, n_envs, n_loops) env info "visited": the auxiliary loss's targets
     states: np.ndarray  # (T, 4, n_envs, hidden): actor h, c, critic h, c
     filled: int = 0
@@ -129,14 +143,15 @@ class Buffer:
     def empty(cls, T: int, n: int, hidden: int, n_loops: int) -> Buffer:
         return cls(np.zeros((T, n, 84, 84, 3), np.uint8), np.zeros((T, n), bool), np.zeros((T, n), np.int64),
                    np.zeros((T, n), np.float32), np.zeros((T, n), np.float32), np.zeros((T, n), bool),
-                   np.zeros((T, n), np.int64), np.zeros((T, n), bool), np.zeros((T, n, n_loops), bool),
+                   np.zeros((T, n), np.int64), np.zeros((T, n), bool), np.full((T, n), -1, np.int64),
+                   np.zeros((T, n, n_loops), bool),
                    np.zeros((T, 4, n, hidden), np.float32))
 
     def drop_front(self, n: int) -> None:
         """Keep steps [n, filled) as the start of the next batch."""
         keep = self.filled - n
-        for name in ("obs", "starts", "actions", "logprobs", "rewards", "dones", "targets", "at_loop", "visited",
-                     "states"):
+        for name in ("obs", "starts", "actions", "logprobs", "rewards", "dones", "targets", "at_loop", "loop",
+                     "visited", "states"):
             arr = getattr(self, name)
             arr[:keep] = arr[n:self.filled].copy()
         self.filled = keep
@@ -200,6 +215,8 @@ class Trainer:
             raise ValueError("n_envs must be a multiple of minibatches")
         if cfg.batch not in ("entropy", "fixed"):
             raise ValueError(f"unknown batch mode {cfg.batch!r}")
+        if cfg.aux_targets not in AUX_TARGETS:
+            raise ValueError(f"unknown aux_targets {cfg.aux_targets!r} (one of {', '.join(AUX_TARGETS)})")
         torch.set_num_threads(cfg.threads)
         torch.manual_seed(cfg.seed)
         self.cfg = cfg
@@ -208,10 +225,12 @@ class Trainer:
         self.n_actions = self.grid.n_loops + 1
         pool = cfg.pool or input_pool(self.grid.shape)
         self.actor = RecurrentNet(self.n_actions, cfg.hidden, pool=pool,
-                                  aux=self.grid.n_loops if cfg.aux_coef > 0 else 0)
+                                  aux=self._aux_outputs() if cfg.aux_coef > 0 else 0)
         self.critic = RecurrentNet(1, cfg.hidden, head_gain=1.0, pool=pool)
         with torch.no_grad():  # prior: "no loop closure" is the common case (probability no_lc_prior at start)
             self.actor.head.bias[0] = np.log(cfg.no_lc_prior) - np.log((1 - cfg.no_lc_prior) / self.grid.n_loops)
+        if cfg.init_from:
+            self._init_from(Path(cfg.init_from))
         self.optimizer = torch.optim.Adam([*self.actor.parameters(), *self.critic.parameters()], lr=cfg.lr, eps=1e-5)
         self.buffer = Buffer.empty(cfg.rollout, cfg.n_envs, cfg.hidden, self.grid.n_loops)
         self.global_step = 0
@@ -244,7 +263,8 @@ class Trainer:
             obs, reward, term, trunc, info = self.envs.step(action.numpy())
             done = term | trunc
             b.rewards[t], b.dones[t], b.targets[t] = reward, done, step_info(info, "correct_action", done)
-            b.at_loop[t] = step_info(info, "loop", done) >= 0
+            b.loop[t] = step_info(info, "loop", done)
+            b.at_loop[t] = b.loop[t] >= 0
             b.visited[t] = step_info(info, "visited", done)
             self.state = [s.numpy() for s in (ah, ac, ch, cc)]
             self.next_obs, self.next_start = obs, term | trunc
@@ -254,6 +274,47 @@ class Trainer:
                 self._returns[k] = 0.0
             b.filled += 1
             self.global_step += n
+
+    def _init_from(self, path: Path) -> None:
+        """Curriculum: copy the parameters of a checkpoint whose shapes match; the rest keep their initialisation."""
+        ckpt = torch.load(path, weights_only=False)
+        copied = []
+        for name, net in (("actor", self.actor), ("critic", self.critic)):
+            own = net.state_dict()
+            same = {k: v for k, v in ckpt[name].items() if k in own and own[k].shape == v.shape}
+            own.update(same)
+            net.load_state_dict(own)
+            copied += [f"{name}.{k}" for k in same]
+        if not copied:
+            raise ValueError(f"{path}: no parameter of matching shape to initialise from")
+        log.info("initialised %d tensors from %s", len(copied), path)
+
+    def _aux_outputs(self) -> int:
+        per_location, extra = AUX_TARGETS[self.cfg.aux_targets]
+        return self.grid.n_loops * per_location + extra
+
+    def aux_loss(self, aux_logits: torch.Tensor, bits: torch.Tensor, place: torch.Tensor, action: torch.Tensor,
+                 place_w: torch.Tensor, action_w: torch.Tensor) -> torch.Tensor:
+        """The auxiliary loss over (T, B) steps. "visited+place+action": BCE of the visit memory plus two
+        classifiers (location stood on or none; the correct action), each step weighted so that the rare
+        classes (on a location; a loop closure due) carry the same total weight as the rest."""
+        L = self.grid.n_loops
+        if self.cfg.aux_targets != "visited+place+action":
+            return nn.functional.binary_cross_entropy_with_logits(aux_logits, bits)
+        bce = nn.functional.binary_cross_entropy_with_logits(aux_logits[..., :L], bits)
+        ce = nn.functional.cross_entropy
+        place_loss = ce(aux_logits[..., L:2 * L + 1].reshape(-1, L + 1), place.reshape(-1), reduction="none")
+        action_loss = ce(aux_logits[..., 2 * L + 1:].reshape(-1, L + 1), action.reshape(-1), reduction="none")
+        return bce + (place_w.reshape(-1) * place_loss).mean() + (action_w.reshape(-1) * action_loss).mean()
+
+    def aux_target_bits(self, T: int) -> np.ndarray:
+        """(T, n_envs, aux outputs) targets of the auxiliary head for the first T buffered steps."""
+        b, L = self.buffer, self.grid.n_loops
+        visited = b.visited[:T]
+        if self.cfg.aux_targets != "visited+here+due":
+            return visited
+        here = b.loop[:T, :, None] == np.arange(L)
+        return np.concatenate([visited, here, here & visited], axis=-1)
 
     # ------------------------------------------------------------ update
 
@@ -307,9 +368,13 @@ class Trainer:
     def _optimise(self, T, frames, index, starts, s0, advantages, returns) -> dict:
         cfg, b = self.cfg, self.buffer
         actions = torch.from_numpy(b.actions[:T])
+        actions_target = torch.from_numpy(b.targets[:T])
         old_logp = torch.from_numpy(b.logprobs[:T])
         adv_t, ret_t = torch.from_numpy(advantages), torch.from_numpy(returns)
-        visited = torch.from_numpy(b.visited[:T]).float()
+        visited = torch.from_numpy(self.aux_target_bits(T)).float()
+        place = torch.from_numpy(b.loop[:T] + 1)  # 0 = on no location, l + 1 = on location l
+        place_w = torch.from_numpy(balance_weights(b.loop[:T] + 1))
+        action_w = torch.from_numpy(balance_weights(b.targets[:T]))
         kinds = b.at_loop[:T] if cfg.balance_first_visits else None
         weight = torch.from_numpy(balance_weights(b.targets[:T], kinds) ** self.balance_power())
         groups = np.array_split(np.arange(cfg.n_envs), cfg.minibatches)
@@ -322,7 +387,8 @@ class Trainer:
                 f = frames[used]
                 if cfg.aux_coef > 0:
                     logits, aux_logits = self.actor.sequence(f, sub, starts[:, e], s0[0][e], s0[1][e], with_aux=True)
-                    aux_loss = nn.functional.binary_cross_entropy_with_logits(aux_logits, visited[:, e])
+                    aux_loss = self.aux_loss(aux_logits, visited[:, e], place[:, e], actions_target[:, e],
+                                             place_w[:, e], action_w[:, e])
                 else:
                     logits = self.actor.sequence(f, sub, starts[:, e], s0[0][e], s0[1][e])
                     aux_loss = torch.zeros(())
@@ -384,7 +450,9 @@ class Trainer:
         cfg = TrainConfig(**{"aux_coef": 0.0, **ckpt["config"]})
         if total_steps is not None:
             cfg.total_steps = total_steps
+        init_from, cfg.init_from = cfg.init_from, ""  # the saved networks replace any initialisation
         trainer = cls(cfg, GridMap.from_json(ckpt["grid"]))
+        trainer.cfg.init_from = init_from
         try:
             trainer.actor.load_state_dict(ckpt["actor"])
         except RuntimeError as exc:
