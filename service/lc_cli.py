@@ -44,6 +44,11 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
         seed: Annotated[int, typer.Option("--seed")] = 0,
         threads: Annotated[int, typer.Option("--threads", help="torch threads")] = 1,
         resume: Annotated[bool, typer.Option("--resume", help="continue from FILE.pt")] = False,
+        aux_targets: Annotated[str, typer.Option(
+            "--aux-targets", help="auxiliary targets of the actor: visited, visited+here+due or "
+                                  "visited+place+action (docs/rl.md)")] = "visited",
+        init_from: Annotated[Path | None, typer.Option(
+            "--init-from", help="checkpoint (.pt) whose parameters of matching shape start the networks")] = None,
     ) -> None:
         """Train a PPO loop-closure policy for a grid map and export it to ONNX."""
         try:
@@ -71,7 +76,8 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
                 grid_map = _map_of_dir(from_map, cell_m) if from_map is not None else GridMap.load(grid)
                 cfg = TrainConfig(map=grid_map.name, total_steps=steps, n_envs=envs, batch=batch.value, n_steps=n_steps,
                                   b1=b1, b2=b2, seed=seed, threads=threads, max_episode_steps=episode_steps,
-                                  minibatches=min(4, envs) if envs % min(4, envs) == 0 else 1)
+                                  minibatches=min(4, envs) if envs % min(4, envs) == 0 else 1,
+                                  aux_targets=aux_targets, init_from=str(init_from) if init_from else "")
                 trainer = Trainer(cfg, grid_map)
         except (MapError, ValueError) as exc:
             raise user_error(str(exc)) from exc

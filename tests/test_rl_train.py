@@ -167,3 +167,24 @@ def test_resume_of_a_checkpoint_saved_before_the_aux_loss(tmp_path):
     torch.save(ckpt, tmp_path / "bad.pt")
     with pytest.raises(ValueError, match="does not match its configuration"):
         Trainer.resume(tmp_path / "bad.pt")
+
+
+def test_place_and_action_aux_targets_and_a_warm_start_from_a_smaller_map(tmp_path):
+    cfg = TrainConfig(map="config2", total_steps=200, n_envs=2, minibatches=2, b1=8, b2=24, threads=1,
+                      aux_targets="visited+place+action")
+    trainer = Trainer(cfg)
+    L = trainer.grid.n_loops
+    assert trainer.actor.aux_head.out_features == L + 2 * (L + 1)  # visit bits, location classes, action classes
+    trainer.train(tmp_path / "small.pt")
+    assert all(np.isfinite(row["aux_loss"]) and row["aux_loss"] > 0 for row in trainer.curve)
+    b = trainer.buffer
+    assert ((b.loop >= -1) & (b.loop < L)).all() and np.array_equal(b.at_loop, b.loop >= 0)
+
+    bigger = Trainer(TrainConfig(map="config3", total_steps=100, n_envs=2, minibatches=2, b1=8, b2=24, threads=1,
+                                 aux_targets="visited+place+action", init_from=str(tmp_path / "small.pt")))
+    small = torch.load(tmp_path / "small.pt", weights_only=False)["actor"]
+    own = bigger.actor.state_dict()
+    assert torch.equal(own["lstm.weight_hh_l0"], small["lstm.weight_hh_l0"])  # shared shapes copied
+    assert own["head.weight"].shape != small["head.weight"].shape  # 5 locations: its own policy head
+    with pytest.raises(ValueError, match="aux_targets"):
+        Trainer(TrainConfig(map="config2", total_steps=10, n_envs=2, minibatches=2, aux_targets="everything"))
