@@ -61,7 +61,7 @@ class ServiceNode:
         self.prefix = settings.key_prefix
         self.queue = IngestQueue(settings.ingest.queue_size)
         self.stats = ServiceStats()
-        self.pipeline = Pipeline(settings, background=True)  # object mapping on its own threads
+        self.pipeline = Pipeline(settings, background=True)  # keyframe mapping on the mapping thread
         self.limits = Limits(settings.ingest.max_payload_bytes, settings.ingest.max_image_pixels)
         self._lock = threading.Lock()  # guards the pipeline between the worker and the trajectory queryable
         self._summary_lock = threading.Lock()  # guards only the swap of ``_summary``
