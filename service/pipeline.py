@@ -46,10 +46,11 @@ class FrameRecord:
     from_keyframe: np.ndarray
 
 
-MAPPING_LAG = 2
+MAPPING_LAG = 3
 """A keyframe's mapping (objects, loop verification) is applied when the keyframe this many later is added:
-the mapping thread has that many keyframe intervals before tracking waits for it (1: at 30 frames/s the
-worker waited at p95 80-107 ms per step, ingest-to-graph p95 160-385 ms)."""
+the mapping thread has that many keyframe intervals before tracking waits for it. `bench throughput` at 30
+frames/s with 14-18 % of the CPU stolen by the host: ingest-to-graph p95 67 and 321 ms with 3, 745 and 1594
+ms with 2; with 1 the worker waited at p95 80-107 ms per step even on a quieter machine."""
 
 
 @dataclass

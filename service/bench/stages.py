@@ -36,7 +36,7 @@ def run_stages_bench(console: Console, dataset: str, frames: int | None, write: 
              f"odometry. Detection + association (detector + objects stages, p50): {per_kf:.1f} ms per keyframe. "
              "'objects' is NPDA with depth warping, tracks, back-projection and intermittent clustering; 'graph' is "
              "the worker's pipeline step of a frame (object mapping and loop verification of a keyframe run on "
-             "the mapping thread and are applied two keyframes later). Keyframe mapping: one frame in "
+             "the mapping thread and are applied three keyframes later). Keyframe mapping: one frame in "
              f"{every} (the run's keyframe spacing) with its ground-truth odometry, each made a keyframe, "
              "through the pipeline (detector, NPDA, tracks, clustering, landmarks into iSAM2; loop closure off): "
              "keyframes / wall time, the frames decoded beforehand; 'one thread' runs each keyframe's mapping "
