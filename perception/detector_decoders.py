@@ -32,16 +32,25 @@ class InputTransform:
         return out
 
 
-def letterbox(image: np.ndarray, size: int, pad_value: int = 0) -> tuple[np.ndarray, InputTransform]:
-    """Aspect-preserving resize into a ``size`` x ``size`` canvas, centred, padded with ``pad_value``."""
+def letterbox(image: np.ndarray, size: int, pad_value: int = 0, height: int | None = None) -> tuple[np.ndarray,
+                                                                                                   InputTransform]:
+    """Aspect-preserving resize into a ``size`` wide, ``height`` (default ``size``) high canvas, centred, padded
+    with ``pad_value``."""
     h, w = image.shape[:2]
-    scale = min(size / h, size / w)
-    new_w, new_h = min(size, round(w * scale)), min(size, round(h * scale))
+    out_h = size if height is None else height
+    scale = min(out_h / h, size / w)
+    new_w, new_h = min(size, round(w * scale)), min(out_h, round(h * scale))
     resized = cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_LINEAR)
-    pad_x, pad_y = (size - new_w) // 2, (size - new_h) // 2
-    canvas = np.full((size, size, image.shape[2]), pad_value, dtype=image.dtype)
+    pad_x, pad_y = (size - new_w) // 2, (out_h - new_h) // 2
+    canvas = np.full((out_h, size, image.shape[2]), pad_value, dtype=image.dtype)
     canvas[pad_y:pad_y + new_h, pad_x:pad_x + new_w] = resized
     return canvas, InputTransform(scale, scale, float(pad_x), float(pad_y))
+
+
+def fitted_height(width: int, height: int, size: int, multiple: int = 32) -> int:
+    """Input height for a ``size``-wide network input that follows a ``width`` x ``height`` image's aspect:
+    the next multiple of ``multiple``, at most ``size`` (384 for 4:3 at 512, 512 for square or portrait)."""
+    return min(size, -(-round(size * height / width) // multiple) * multiple)
 
 
 def stretch(image: np.ndarray, size: int) -> tuple[np.ndarray, InputTransform]:

@@ -45,6 +45,8 @@ class KeyframeSettings(BaseModel):
     rotation_deg: float = Field(5.0, gt=0)
     max_interval: int = Field(10, ge=1, description="frames between keyframes at most")
     min_inliers: int = Field(120, ge=0, description="visual odometry: new keyframe when tracking weakens")
+    skip_edges: int = Field(2, ge=1, description="visual odometry: factors from a new keyframe to this many earlier "
+                            "keyframes (1 = the previous one only)")
 
 
 class OdometrySettings(BaseModel):
@@ -99,6 +101,8 @@ class DetectorSettings(BaseModel):
     class_thresholds: dict[str, float] | None = Field(None, description="per-class minimum scores")
     nms_iou: float = Field(0.5, gt=0, le=1)
     max_detections: int = Field(50, ge=1)
+    fit_aspect: bool = Field(False, description="centernet: a 512-wide input as high as the image's aspect needs "
+                             "(512 x 384 for 4:3) instead of the letterboxed 512 x 512: faster, fewer detections")
 
 
 class ObjectSettings(BaseModel):

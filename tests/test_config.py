@@ -36,3 +36,16 @@ def test_invalid_values_give_one_clear_error(tmp_path):
         load_settings(tmp_path / "missing.yaml")
     with pytest.raises(ConfigError, match="robot"):
         load_settings(None, {"robot": "bad/name"})
+
+
+def test_component_configs_take_the_same_named_settings():
+    from perception.detector import DetectorConfig
+    from perception.frontend import KeyframePolicy
+    from service.pipeline import from_settings
+
+    s = load_settings(None, {"keyframes": {"skip_edges": 4, "min_inliers": 90}, "detector": {"fit_aspect": True}})
+    policy = from_settings(KeyframePolicy, s.keyframes, s.odometry)
+    assert (policy.skip_edges, policy.min_inliers) == (4, 90)  # keyframes' min_inliers wins over odometry's
+    assert from_settings(DetectorConfig, s.detector).fit_aspect is True
+    with pytest.raises(ConfigError):
+        load_settings(None, {"keyframes": {"skip_edges": 0}})

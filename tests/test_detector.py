@@ -16,8 +16,9 @@ from skimage import data
 
 from perception.coco import COCO_CLASSES
 from perception.detector import Detector, DetectorConfig, default_model_path
-from perception.detector_decoders import (InputTransform, decode_centernet, decode_nanodet, decode_yolo, letterbox,
-                                          nms, select, stretch)
+from perception.centernet_input import ReshapeError, reshaped_centernet
+from perception.detector_decoders import (InputTransform, decode_centernet, decode_nanodet, decode_yolo,
+                                          fitted_height, letterbox, nms, select, stretch)
 from perception.frame import Detection
 from service.bench.detector import run_detector_bench
 
@@ -241,6 +242,35 @@ def test_centernet_reports_nothing_confident_on_the_rocket(centernet):
     assert [d for d in centernet.detect(data.rocket()) if d.score >= 0.4] == []
 
 
+def test_fitted_height_follows_the_aspect_in_multiples_of_32():
+    assert [fitted_height(w, h, 512) for w, h in ((640, 480), (512, 512), (600, 400), (480, 640), (1280, 720))] == \
+        [384, 512, 352, 512, 288]
+
+
+def test_letterbox_into_a_wide_canvas_centres_and_inverts():
+    img, tf = letterbox(np.full((300, 640, 3), 7, np.uint8), 512, 0, 288)
+    assert img.shape == (288, 512, 3) and img[0, 0, 0] == 0 and img[144, 256, 0] == 7
+    np.testing.assert_allclose(tf.to_image(np.array([[tf.pad_x, tf.pad_y, 512 - tf.pad_x, 288 - tf.pad_y]])),
+                               [[0, 0, 640, 300]], atol=1)
+
+
+def test_centernet_on_a_4_3_image_runs_512_x_384_and_finds_what_the_square_input_finds(centernet):
+    image = data.astronaut()[64:448]  # 512 x 384
+    fit = Detector(DetectorConfig(kind="centernet", fit_aspect=True))
+    assert fit._preprocess(image)[0].shape == (1, 384, 512, 3)
+    assert centernet._preprocess(image)[0].shape == (1, 512, 512, 3)
+    fitted, full = fit.detect(image), centernet.detect(image)
+    assert fitted and fitted[0].label == full[0].label == "person"
+    assert iou(fitted[0].box, full[0].box) >= 0.9 and abs(fitted[0].score - full[0].score) < 0.05
+
+
+def test_reshaping_rejects_bad_heights_and_other_models():
+    with pytest.raises(ReshapeError, match="multiple of 32"):
+        reshaped_centernet(default_model_path("centernet"), 380)
+    with pytest.raises(ReshapeError):
+        reshaped_centernet(default_model_path("nanodet"), 384)
+
+
 def test_nanodet_finds_the_cat_and_the_astronaut(nanodet):
     cats = [d for d in nanodet.detect(data.chelsea()) if d.label == "cat"]
     assert cats and iou(cats[0].box, CAT_CHELSEA) >= 0.5
@@ -278,7 +308,8 @@ def test_bench_counts_classes_and_writes_a_table_and_contact_sheets(tmp_path, mo
     monkeypatch.chdir(tmp_path)
     spec = "synthetic:room?seed=0&frames=4&width=320&height=240"
     result = run_detector_bench(Console(file=io.StringIO()), spec, 2, tmp_path / "bench.md")
-    assert [m["kind"] for m in result["models"]] == ["centernet", "nanodet"]
+    assert [m["kind"] for m in result["models"]] == ["centernet", "nanodet", "centernet"]
+    assert result["models"][2]["model"] == "centernet (fit_aspect: 512 x 384 input for 4:3)"
     assert all(m["frames"] == 2 and m["p50_ms"] > 0 for m in result["models"])
     assert "<!-- bench:detector -->" in (tmp_path / "bench.md").read_text()
     sheet = cv2.imread(str(tmp_path / "docs" / "detector_contact_sheet.jpg"))

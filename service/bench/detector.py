@@ -32,6 +32,7 @@ class ModelRun:
     """What one model found on the sampled frames, and how long it took."""
 
     kind: str
+    name: str = ""
     frames: int = 0
     counts: Counter = field(default_factory=Counter)
     ms: list[float] = field(default_factory=list)
@@ -40,7 +41,7 @@ class ModelRun:
 
     def summary(self) -> dict:
         ms = np.asarray(self.ms)
-        return {"kind": self.kind, "frames": self.frames, "p50_ms": float(np.percentile(ms, 50)),
+        return {"kind": self.kind, "model": self.name or self.kind, "frames": self.frames, "p50_ms": float(np.percentile(ms, 50)),
                 "p95_ms": float(np.percentile(ms, 95)), "fps": 1000.0 / float(ms.mean()),
                 "cpu_ms": float(np.median(self.cpu_ms)),
                 "detections": int(sum(self.counts.values())), "counts": dict(self.counts.most_common())}
@@ -88,6 +89,12 @@ def sheet_path(kind: str, first: bool) -> Path:
     return SHEET_FILE if first else SHEET_FILE.with_name(f"{SHEET_FILE.stem}_{kind}{SHEET_FILE.suffix}")
 
 
+def model_name(config: DetectorConfig) -> str:
+    """The model's kind, plus the input when CenterNet runs on an input fitted to the image (``fit_aspect``)."""
+    return config.kind + (" (fit_aspect: 512 x 384 input for 4:3)" if config.kind == "centernet" and config.fit_aspect
+                          else "")
+
+
 def measure(dataset_dir: str, every: int, configs: list[DetectorConfig]) -> list[ModelRun]:
     """Run each detector on every ``every``-th frame, interleaved per frame so load drift hits all alike."""
     data = open_dataset(dataset_dir)
@@ -95,7 +102,7 @@ def measure(dataset_dir: str, every: int, configs: list[DetectorConfig]) -> list
     cells = SHEET_GRID[0] * SHEET_GRID[1]
     on_sheet = {indices[int(i)] for i in np.linspace(0, len(indices) - 1, min(cells, len(indices)))}
     detectors = [Detector(cfg) for cfg in configs]
-    runs = [ModelRun(cfg.kind) for cfg in configs]
+    runs = [ModelRun(cfg.kind, model_name(cfg)) for cfg in configs]
     first = data.frame(indices[0]).rgb
     for detector in detectors:
         detector.detect(first)  # warm-up, not timed
@@ -125,14 +132,16 @@ def _write_sheet(run: ModelRun, path: Path) -> Path:
 def run_detector_bench(console: Console, dataset_dir: str, every: int, write: Path | None,
                        configs: list[DetectorConfig] | None = None) -> dict:
     """Measure each detector (default: both shipped models), print and record the tables, save contact sheets."""
-    configs = configs or [DetectorConfig(kind="centernet"), DetectorConfig(kind="nanodet")]
+    configs = configs or [DetectorConfig(kind="centernet"), DetectorConfig(kind="nanodet"),
+                          DetectorConfig(kind="centernet", fit_aspect=True)]
     started = time.monotonic()
     runs = measure(dataset_dir, every, configs)
-    sheets = [_write_sheet(run, sheet_path(run.kind, i == 0)) for i, run in enumerate(runs)]
+    sheets = [_write_sheet(run, sheet_path(run.kind, i == 0)) for i, run in enumerate(runs)
+              if run.name == run.kind]  # one sheet per shipped model, as it runs by default
     results = [run.summary() for run in runs]
     header = ["model", "frames", "ms/frame p50", "ms/frame p95", "frames/s", "CPU ms/frame p50", "detections",
               "per frame"]
-    rows = [[r["kind"], r["frames"], f"{r['p50_ms']:.1f}", f"{r['p95_ms']:.1f}", f"{r['fps']:.1f}",
+    rows = [[r["model"], r["frames"], f"{r['p50_ms']:.1f}", f"{r['p95_ms']:.1f}", f"{r['fps']:.1f}",
              f"{r['cpu_ms']:.0f}", r["detections"], f"{r['detections'] / r['frames']:.2f}"] for r in results]
     labels = sorted({label for r in results for label in r["counts"]},
                     key=lambda label: -sum(r["counts"].get(label, 0) for r in results))
@@ -144,9 +153,9 @@ def run_detector_bench(console: Console, dataset_dir: str, every: int, write: Pa
         table.add_row(*map(str, row))
     console.print(table)
     console.print("detections per class: " + "; ".join(
-        f"{r['kind']}: " + ", ".join(f"{k} {v}" for k, v in r["counts"].items()) for r in results))
+        f"{r['model']}: " + ", ".join(f"{k} {v}" for k, v in r["counts"].items()) for r in results))
     thresholds = "; ".join(f"{c.kind}: floor {c.thresholds()[0]}, per class {c.thresholds()[1] or 'none'}"
-                           for c in configs)
+                           for c in {c.kind: c for c in configs}.values())
     load = os.getloadavg()[0]
     notes = (f"Detector only (pre-processing, onnxruntime with {configs[0].threads} intra-op threads, decoding, "
              f"NMS), models interleaved frame by frame after one warm-up frame; frames/s = 1000 / mean ms; "
@@ -155,7 +164,7 @@ def run_detector_bench(console: Console, dataset_dir: str, every: int, write: Pa
              f"the wall-clock figures). Thresholds: {thresholds}. "
              f"Contact sheets: {', '.join(f'`{p.as_posix()}`' for p in sheets)}.")
     tables = markdown_table(header, rows) + "\n\nDetections per class:\n\n" + markdown_table(
-        ["class"] + [r["kind"] for r in results], class_rows)
+        ["class"] + [r["model"] for r in results], class_rows)
     path = record("detector", "Object detector on real frames",
                   f"objslam bench detector --dataset '{dataset_dir}' --every {every}", tables, notes, write)
     console.print(f"recorded in {path}; contact sheets {', '.join(map(str, sheets))}")
