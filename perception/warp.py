@@ -39,8 +39,9 @@ def warp_depth(depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, splat:
 
     Each point lands on its nearest pixel (``splat=2``: on the 2x2 pixels around it, which closes the
     one-pixel cracks of magnified surfaces); where several land on one pixel the nearest wins
-    (``np.minimum.at``, then a 2x2 minimum filter for the splat). Pixels nothing lands on are NaN. ``step=2`` warps every second pixel of every second
-    row and splats each onto 2x2 pixels: four times fewer points, for consumers that sample boxes.
+    (``np.minimum.at``, then a 2x2 minimum filter for the splat). Pixels nothing lands on are NaN. ``step=2``
+    warps every second pixel of every second row and splats each onto 2x2 pixels: four times fewer points,
+    for consumers that sample boxes.
     """
     h, w = depth_m.shape
     if step > 1:
@@ -83,26 +84,39 @@ def warp_depth(depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, splat:
     return out
 
 
-def warp_box(box: Box, depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, gap_m: float = 0.05,
-             anchor_fraction: float = 0.5, max_points: int = 4000) -> Box | None:
-    """A box moved into the newer image: bounding box of its projected dominant-depth pixels, or None.
+def moved_box_points(box: Box, depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, gap_m: float = 0.05,
+                     anchor_fraction: float = 0.5, max_points: int = 4000) -> np.ndarray:
+    """A box's object points in the newer camera's frame (N, 3): its dominant-depth pixels, back-projected.
 
-    Only the pixels of the box's dominant depth segment are projected (background inside the box moves
-    with a different parallax); at most ``max_points`` pixels (by stride) are used; the result is clipped
-    to the image. None when nothing projects inside.
+    Only the pixels of the box's dominant depth segment are used (background inside the box moves with a
+    different parallax); at most ``max_points`` pixels (by stride). Empty when the box has no depth.
     """
-    h, w = depth_m.shape
     if not np.all(np.isfinite(box)):
-        return None
+        return np.zeros((0, 3))
     rows, cols = box_pixels(depth_m, box)
     idx = stride_subsample(len(rows), max_points)
     rows, cols = rows[idx], cols[idx]
     if len(rows) == 0:
-        return None
+        return np.zeros((0, 3))
     cr, cc = box_pixels(depth_m, box, anchor_fraction)
     anchor = float(np.median(depth_m[cr, cc] if len(cr) else depth_m[rows, cols]))
     keep = dominant_depth_mask(depth_m[rows, cols], anchor, gap_m)
-    uv, z = project(transform(T_new_old, backproject(depth_m, K, rows[keep], cols[keep])), K)
+    return transform(T_new_old, backproject(depth_m, K, rows[keep], cols[keep]))
+
+
+def in_view(points: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Mask of the camera-frame points in front of the camera that project inside a width x height image."""
+    uv, z = project(points, K)
+    with np.errstate(invalid="ignore"):
+        return (z > MIN_Z_M) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
+
+
+def warp_box(box: Box, depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, gap_m: float = 0.05,
+             anchor_fraction: float = 0.5, max_points: int = 4000) -> Box | None:
+    """A box moved into the newer image: bounding box of its projected object points (``moved_box_points``),
+    clipped to the image; None when nothing projects inside."""
+    h, w = depth_m.shape
+    uv, z = project(moved_box_points(box, depth_m, K, T_new_old, gap_m, anchor_fraction, max_points), K)
     uv = uv[z > MIN_Z_M]
     if len(uv) == 0:
         return None

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.stats import mannwhitneyu, norm
@@ -10,11 +12,13 @@ from perception.frame import Detection
 from perception.npda import (
     NPDAConfig,
     assign,
+    associate,
     association_matrix,
     association_score,
     box_samples,
     is_compatible,
     mann_whitney,
+    out_of_view_scores,
     u_statistics,
 )
 from perception.tracks import Tracker
@@ -139,3 +143,33 @@ def test_tracks_follow_association_chains_and_keep_ids() -> None:
     assert third[0] == second[2] and len(set(first + third)) == 4
     assert tracker.associated(third[0]) and tracker.associated(first[0])
     assert not tracker.associated(third[1])
+
+
+def _side_by_side_views(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One 2 m deep object seen from two cameras 1.2 m apart along x: the previous camera sees the part at
+    x in [1.0, 1.8] m (current camera frame), which lies right of the current image; the current one sees the
+    part at x in [0.3, 0.9] m. Returns K, T_cur_prev, previous depth, current depth."""
+    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    rng = np.random.default_rng(seed)
+    prev, cur = np.full((480, 640), np.nan), np.full((480, 640), np.nan)
+    prev[200:300, 270:470] = 2.0 + 0.005 * rng.standard_normal((100, 200))  # x_prev in [-0.2, 0.6]
+    cur[200:300, 395:545] = 2.0 + 0.005 * rng.standard_normal((100, 150))  # x_cur in [0.3, 0.9]
+    T = np.eye(4)
+    T[0, 3] = 1.2  # p_cur = p_prev + (1.2, 0, 0)
+    return K, T, prev, cur
+
+
+def test_an_object_whose_seen_part_leaves_the_image_is_associated_by_its_moved_depths() -> None:
+    K, T, prev, cur = _side_by_side_views()
+    chair = [Detection("chair", 0.9, (270.0, 200.0, 470.0, 300.0))]
+    current = [Detection("chair", 0.9, (395.0, 200.0, 545.0, 300.0)),
+               Detection("tv", 0.9, (395.0, 200.0, 545.0, 300.0))]
+    config = NPDAConfig()
+    result = associate(chair, prev, current, cur, K, T, config)
+    assert result.warped and result.pairs == [(0, 0)] and result.scores[0, 1] == 0.0  # class gate holds
+    assert associate(chair, prev, current, cur, K, T, replace(config, out_of_view_gap_m=None)).pairs == []
+    far = np.eye(4)
+    far[0, 3] = 2.2  # the seen part now lies 1.1 m right of the current one: beyond the 0.5 m gap
+    assert associate(chair, prev, current, cur, K, far, config).pairs == []
+    rows = out_of_view_scores(chair, prev, current, cur, K, T, config)
+    assert list(rows) == [0] and rows[0][0] >= config.alpha
