@@ -220,7 +220,7 @@ def associate(
     the box gate then compares the raw boxes).
     """
     warped = T_cur_prev is not None and needs_warp(T_cur_prev, config.warp_tau, config.warp_phi)
-    original = (prev_dets, prev_depth, cur_depth)
+    unwarped = prev_dets, prev_depth, cur_dets, cur_depth  # the out-of-view test reads the depths as measured
     moved = None
     if T_cur_prev is not None and (warped or config.min_iou > 0):
         moved = warp_boxes([d.box for d in prev_dets], prev_depth, K, T_cur_prev)
@@ -234,8 +234,7 @@ def associate(
             prev_depth, cur_depth = np.where(both, prev_depth, np.nan), np.where(both, cur_depth, np.nan)
     scores = association_matrix(prev_dets, prev_depth, cur_dets, cur_depth, config, moved)
     if warped and config.out_of_view_gap_m is not None:
-        for row, values in out_of_view_scores(original[0], original[1], cur_dets, original[2], K, T_cur_prev,
-                                              config).items():
+        for row, values in out_of_view_scores(*unwarped, K, T_cur_prev, config).items():
             scores[row] = np.maximum(scores[row], values)  # the warped test where it could run
     return Association(assign(scores, config), scores, warped)
 
