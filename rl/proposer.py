@@ -5,12 +5,16 @@ camera enters a new cell the agent has taken a step: its cone-of-vision observat
 that cell and heading, the policy runs once (its LSTM state carried over), and a loop-closure action
 for location l proposes the earlier keyframes recorded at l's cell (and its neighbours within
 ``radius`` cells), older than the last ``exclude_last`` steps, as candidates for geometric verification.
+The action holds for the whole step: every further keyframe taken in the same cell proposes again (a
+handheld camera often reaches the view that matches an earlier one only a few keyframes after entering
+the cell). Candidates are ranked by the grid heading (the same first), then by how close the earlier
+keyframe's pose estimate is to the current one (position, plus viewing direction at 0.5 m per radian).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -50,40 +54,44 @@ class PolicyProposer:
             self.exclude_last = int(self.policy.meta.get("exclude_last", 4))
         self.policy.reset(1)
         self._cell: tuple[int, int] | None = None
-        self._visits: dict[tuple[int, int], list[tuple[int, int, int]]] = {}  # cell -> (keyframe, step, heading)
+        self._active: Proposal | None = None  # the loop-closure action of the current step, if any
+        # cell -> (keyframe, step, heading, position, viewing direction)
+        self._visits: dict[tuple[int, int], list[tuple[int, int, int, np.ndarray, np.ndarray]]] = {}
 
     def observe(self, keyframe: int, pose: np.ndarray) -> Proposal | None:
-        """Record the keyframe at its cell; on entering a new cell run the policy and maybe propose."""
+        """Record the keyframe at its cell; on entering a new cell run the policy; while its loop-closure
+        action holds (the same cell), propose candidates for this keyframe."""
         cell = tuple(int(v) for v in self.frame.cells(pose[:3, 3][None])[0])
         if not self.frame.inside(np.array([cell]))[0]:
+            self._active = None
             return None  # off the trained map: the policy has nothing to say
         heading = self.frame.heading(pose[:3, :3])
-        if cell == self._cell:
-            self._visits.setdefault(cell, []).append((keyframe, self.steps, heading))
-            return None
-        self._cell = cell
-        self.steps += 1
-        t0 = time.perf_counter()
-        probs = self.policy.probabilities(self.renderer.observation(cell, heading)[None])[0]
-        self.inference_s.append(time.perf_counter() - t0)
-        self._visits.setdefault(cell, []).append((keyframe, self.steps, heading))
-        action = int(np.argmax(probs))
-        if action == 0:
-            return None
-        target = self.policy.grid.loops[action - 1]
-        proposal = Proposal(self.steps, action - 1, cell, float(probs[action]),
-                            self._candidates(target, heading))
-        self.proposals.append(proposal)
+        if cell != self._cell:
+            self._cell = cell
+            self.steps += 1
+            t0 = time.perf_counter()
+            probs = self.policy.probabilities(self.renderer.observation(cell, heading)[None])[0]
+            self.inference_s.append(time.perf_counter() - t0)
+            action = int(np.argmax(probs))
+            self._active = None if action == 0 else Proposal(self.steps, action - 1, cell, float(probs[action]), [])
+        proposal = None
+        if self._active is not None:
+            target = self.policy.grid.loops[self._active.location]
+            proposal = replace(self._active, candidates=self._candidates(target, heading, pose))
+            self.proposals.append(proposal)
+        self._visits.setdefault(cell, []).append((keyframe, self.steps, heading, pose[:3, 3].copy(),
+                                                  pose[:3, 2].copy()))
         return proposal
 
-    def _candidates(self, target: tuple[int, int], heading: int) -> list[int]:
-        """Older keyframes at the proposed location, same heading first, then nearest the location."""
+    def _candidates(self, target: tuple[int, int], heading: int, pose: np.ndarray) -> list[int]:
+        """Older keyframes at the proposed location: the same heading first, then the nearest in pose."""
         found = []
         for dr in range(-self.radius, self.radius + 1):
             for dc in range(-self.radius, self.radius + 1):
-                for kf, step, h in self._visits.get((target[0] + dr, target[1] + dc), []):
+                for kf, step, h, position, forward in self._visits.get((target[0] + dr, target[1] + dc), []):
                     if step < self.steps - self.exclude_last:
-                        found.append((h != heading, abs(dr) + abs(dc), step, kf))
+                        angle = float(np.arccos(np.clip(forward @ pose[:3, 2], -1.0, 1.0)))
+                        found.append((h != heading, float(np.linalg.norm(position - pose[:3, 3])) + 0.5 * angle, kf))
         found.sort()
         out: list[int] = []
         for *_, kf in found:
