@@ -81,7 +81,9 @@ def run_policy_loops_bench(console: Console, datasets: list[str] | None, steps: 
     notes = ("Two passes per dataset: the appearance run builds the map and its grid world (0.25 m cells, "
              "crossings as loop-closure locations), a PPO policy is trained for it (128-step episodes, one "
              "thread; started from the shipped grid-world policy's parameters of matching shape when 'from' "
-             "names one: its encoder and LSTM, and its heads when the location counts agree), then the policy is the only candidate source. A loop is false when the ground-truth "
+             "names one: its encoder and LSTM, and its heads when the location counts agree), then the policy "
+             "is the only candidate source (a loop-closure action holds while the camera stays in its cell; "
+             "the nearest earlier keyframes at the location are verified). A loop is false when the ground-truth "
              "poses of its frames are more than 0.3 m / 20 deg apart. 'policy p50' is the median time of "
              "projecting the pose, rendering the observation and running the ONNX policy, per keyframe.")
     record("policy-loops", "RL loop closure in the service (issue 6)",
