@@ -58,6 +58,16 @@ class PolicyProposer:
         # cell -> (keyframe, step, heading, position, viewing direction)
         self._visits: dict[tuple[int, int], list[tuple[int, int, int, np.ndarray, np.ndarray]]] = {}
 
+    def state(self) -> dict:
+        """Plain state to resume from: steps, the current cell and its action, the visits, the LSTM state."""
+        return {"steps": self.steps, "cell": self._cell, "active": self._active, "visits": self._visits,
+                "h": self.policy.h, "c": self.policy.c}
+
+    def restore(self, state: dict) -> None:
+        self.steps, self._cell, self._active = state["steps"], state["cell"], state["active"]
+        self._visits = state["visits"]
+        self.policy.h, self.policy.c = state["h"], state["c"]
+
     def observe(self, keyframe: int, pose: np.ndarray) -> Proposal | None:
         """Record the keyframe at its cell; on entering a new cell run the policy; while its loop-closure
         action holds (the same cell), propose candidates for this keyframe."""

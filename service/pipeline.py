@@ -482,6 +482,7 @@ class Pipeline:
             "object_poses": np.array(self._object_poses).reshape(-1, 4, 4),
             "reposes": self.reposes,
             "loops": None if self.loops is None else self.loops.state(),
+            "proposer": None if self.proposer is None else self.proposer.state(),
         }
 
     @classmethod
@@ -494,6 +495,8 @@ class Pipeline:
             p.frontend.restore(state["frontend"])
             if p.loops is not None and state["loops"] is not None:
                 p.loops.restore(state["loops"])
+            if p.proposer is not None and state.get("proposer") is not None:
+                p.proposer.restore(state["proposer"])
         r = state["records"]
         p.records = [FrameRecord(float(t), int(s), int(k), bool(kf), odo, off) for t, s, k, kf, odo, off in zip(
             r["timestamp"], r["seq"], r["keyframe"], r["is_keyframe"], r["odometry"], r["from_keyframe"])]

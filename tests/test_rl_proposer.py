@@ -10,6 +10,7 @@ import pytest
 
 from rl.policy import OnnxPolicy
 from rl.proposer import PolicyProposer
+from service.persistence import decode, encode
 from service.sources import open_dataset
 
 POLICY = Path(__file__).resolve().parents[1] / "models" / "lc" / "room_seed3.onnx"
@@ -42,3 +43,20 @@ def test_loop_closure_actions_hold_for_the_step_and_propose_older_keyframes_near
             same = proposer.frame.heading(poses[c][:3, :3]) == proposer.frame.heading(poses[kf][:3, :3])
             costs.append((not same, np.linalg.norm(poses[c][:3, 3] - poses[kf][:3, 3]) + 0.5 * angle))
         assert costs == sorted(costs) and len(p.candidates) <= 3
+
+
+@pytest.mark.skipif(not POLICY.is_file(), reason="the shipped room_seed3 policy is missing")
+def test_a_proposer_restored_from_a_snapshot_continues_exactly():
+    poses = open_dataset("synthetic:room?seed=3&frames=300").ground_truth.poses[::3]
+    first, half = PolicyProposer(OnnxPolicy(POLICY)), len(poses) // 2
+    for kf in range(half):
+        first.observe(kf, poses[kf])
+    resumed = PolicyProposer(OnnxPolicy(POLICY))
+    resumed.restore(decode(b"".join(encode({"proposer": first.state()})))["proposer"])  # the snapshot codec
+    rest = [(first.observe(kf, poses[kf]), resumed.observe(kf, poses[kf])) for kf in range(half, len(poses))]
+    assert any(a is not None and a.candidates for a, _ in rest)  # the second half proposes loop closures
+    for a, b in rest:
+        assert (a is None) == (b is None)
+        if a is not None:
+            assert (a.step, a.location, a.cell, a.candidates) == (b.step, b.location, b.cell, b.candidates)
+            assert a.probability == pytest.approx(b.probability, abs=1e-6)
