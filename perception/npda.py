@@ -21,7 +21,7 @@ from scipy.stats import rankdata
 
 from perception.features import box_window, stride_subsample
 from perception.frame import Detection
-from perception.warp import MIN_Z_M, in_view, moved_box_points, needs_warp, warp_boxes, warp_depth
+from perception.warp import MIN_Z_M, image_boxes, in_view, moved_box_points, needs_warp, warp_depth
 
 log = logging.getLogger(__name__)
 
@@ -220,10 +220,11 @@ def associate(
     the box gate then compares the raw boxes).
     """
     warped = T_cur_prev is not None and needs_warp(T_cur_prev, config.warp_tau, config.warp_phi)
-    unwarped = prev_dets, prev_depth, cur_dets, cur_depth  # the out-of-view test reads the depths as measured
-    moved = None
+    labels, measured_cur_depth = [d.label for d in prev_dets], cur_depth  # for the out-of-view test
+    moved, moved_points = None, []
     if T_cur_prev is not None and (warped or config.min_iou > 0):
-        moved = warp_boxes([d.box for d in prev_dets], prev_depth, K, T_cur_prev)
+        moved_points = [moved_box_points(d.box, prev_depth, K, T_cur_prev) for d in prev_dets]
+        moved = image_boxes(moved_points, K, prev_depth.shape[1], prev_depth.shape[0])
     elif config.min_iou > 0:
         moved = np.array([d.box for d in prev_dets], float).reshape(-1, 4)
     if warped:
@@ -234,7 +235,7 @@ def associate(
             prev_depth, cur_depth = np.where(both, prev_depth, np.nan), np.where(both, cur_depth, np.nan)
     scores = association_matrix(prev_dets, prev_depth, cur_dets, cur_depth, config, moved)
     if warped and config.out_of_view_gap_m is not None:
-        for row, values in out_of_view_scores(*unwarped, K, T_cur_prev, config).items():
+        for row, values in out_of_view_scores(labels, moved_points, cur_dets, measured_cur_depth, K, config).items():
             scores[row] = np.maximum(scores[row], values)  # the warped test where it could run
     return Association(assign(scores, config), scores, warped)
 
@@ -245,15 +246,15 @@ def _extent(points: np.ndarray) -> np.ndarray:
 
 
 def out_of_view_scores(
-    prev_dets: Sequence[Detection],
-    prev_depth: np.ndarray,
+    prev_labels: Sequence[str],
+    prev_points: Sequence[np.ndarray],
     cur_dets: Sequence[Detection],
     cur_depth: np.ndarray,
     K: np.ndarray,
-    T_cur_prev: np.ndarray,
     config: NPDAConfig,
 ) -> dict[int, np.ndarray]:
-    """Rows of A for the previous boxes whose object points mostly leave the current image.
+    """Rows of A for the previous boxes whose object points (``prev_points``: moved into the current camera,
+    ``moved_box_points``) mostly leave the current image.
 
     Warping cannot test them: what the previous keyframe saw of the object is outside the current view. The
     U test then compares the depths of those points in the current camera with each current box's depth
@@ -263,8 +264,7 @@ def out_of_view_scores(
     h, w = cur_depth.shape
     rows: dict[int, np.ndarray] = {}
     current = None
-    for row, det in enumerate(prev_dets):
-        points = moved_box_points(det.box, prev_depth, K, T_cur_prev)
+    for row, (label, points) in enumerate(zip(prev_labels, prev_points)):
         points = points[points[:, 2] > MIN_Z_M]
         if len(points) < config.min_samples or in_view(points, K, w, h).mean() >= 0.5:
             continue
@@ -282,7 +282,7 @@ def out_of_view_scores(
         lo, hi = _extent(points)
         valid = np.zeros(len(cur_dets), bool)
         for k, (extent, s) in enumerate(current):
-            if extent is None or len(s) == 0 or (config.class_gate and cur_dets[k].label != det.label):
+            if extent is None or len(s) == 0 or (config.class_gate and cur_dets[k].label != label):
                 continue
             gap = np.maximum(0.0, np.maximum(lo - extent[1], extent[0] - hi))
             valid[k] = float(np.linalg.norm(gap)) <= config.out_of_view_gap_m

@@ -111,29 +111,33 @@ def in_view(points: np.ndarray, K: np.ndarray, width: int, height: int) -> np.nd
         return (z > MIN_Z_M) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
 
 
-def warp_box(box: Box, depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, gap_m: float = 0.05,
-             anchor_fraction: float = 0.5, max_points: int = 4000) -> Box | None:
-    """A box moved into the newer image: bounding box of its projected object points (``moved_box_points``),
-    clipped to the image; None when nothing projects inside."""
-    h, w = depth_m.shape
-    uv, z = project(moved_box_points(box, depth_m, K, T_new_old, gap_m, anchor_fraction, max_points), K)
+def image_box(points: np.ndarray, K: np.ndarray, width: int, height: int) -> Box | None:
+    """Bounding box of camera-frame points projected into a width x height image, clipped to it; None when
+    nothing projects inside."""
+    uv, z = project(points, K)
     uv = uv[z > MIN_Z_M]
     if len(uv) == 0:
         return None
     lo, hi = uv.min(axis=0), uv.max(axis=0)
-    bx1, by1, bx2, by2 = max(lo[0], 0.0), max(lo[1], 0.0), min(hi[0] + 1.0, float(w)), min(hi[1] + 1.0, float(h))
+    bx1, by1 = max(lo[0], 0.0), max(lo[1], 0.0)
+    bx2, by2 = min(hi[0] + 1.0, float(width)), min(hi[1] + 1.0, float(height))
     if bx2 <= bx1 or by2 <= by1:
         return None
     return (float(bx1), float(by1), float(bx2), float(by2))
 
 
-def warp_boxes(
-    boxes: list[Box], depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray
-) -> np.ndarray:
-    """Boxes (L, 4) moved into the newer image by ``warp_box``; rows of NaN for boxes that leave it."""
-    out = np.full((len(boxes), 4), np.nan)
-    for i, box in enumerate(boxes):
-        moved = warp_box(box, depth_m, K, T_new_old)
-        if moved is not None:
-            out[i] = moved
+def warp_box(box: Box, depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, gap_m: float = 0.05,
+             anchor_fraction: float = 0.5, max_points: int = 4000) -> Box | None:
+    """A box moved into the newer image: ``image_box`` of its object points (``moved_box_points``)."""
+    h, w = depth_m.shape
+    return image_box(moved_box_points(box, depth_m, K, T_new_old, gap_m, anchor_fraction, max_points), K, w, h)
+
+
+def image_boxes(points: list[np.ndarray], K: np.ndarray, width: int, height: int) -> np.ndarray:
+    """``image_box`` of each point set as rows (L, 4); rows of NaN for sets that leave the image."""
+    out = np.full((len(points), 4), np.nan)
+    for i, p in enumerate(points):
+        box = image_box(p, K, width, height)
+        if box is not None:
+            out[i] = box
     return out

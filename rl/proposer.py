@@ -42,7 +42,6 @@ class PolicyProposer:
     max_candidates: int = 3
     exclude_last: int | None = None  # default: the policy's own training rule
     steps: int = 0
-    proposals: list[Proposal] = field(default_factory=list)
     inference_s: list[float] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -88,7 +87,6 @@ class PolicyProposer:
         if self._active is not None:
             target = self.policy.grid.loops[self._active.location]
             proposal = replace(self._active, candidates=self._candidates(target, heading, pose))
-            self.proposals.append(proposal)
         self._visits.setdefault(cell, []).append((keyframe, self.steps, heading, pose[:3, 3].copy(),
                                                   pose[:3, 2].copy()))
         return proposal

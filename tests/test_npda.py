@@ -22,6 +22,7 @@ from perception.npda import (
     u_statistics,
 )
 from perception.tracks import Tracker
+from perception.warp import moved_box_points
 
 
 def _scipy(x: np.ndarray, y: np.ndarray, continuity: bool) -> tuple[float, float]:
@@ -171,5 +172,5 @@ def test_an_object_whose_seen_part_leaves_the_image_is_associated_by_its_moved_d
     far = np.eye(4)
     far[0, 3] = 2.2  # the seen part now lies 1.1 m right of the current one: beyond the 0.5 m gap
     assert associate(chair, prev, current, cur, K, far, config).pairs == []
-    rows = out_of_view_scores(chair, prev, current, cur, K, T, config)
+    rows = out_of_view_scores(["chair"], [moved_box_points(chair[0].box, prev, K, T)], current, cur, K, config)
     assert list(rows) == [0] and rows[0][0] >= config.alpha

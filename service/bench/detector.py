@@ -41,7 +41,8 @@ class ModelRun:
 
     def summary(self) -> dict:
         ms = np.asarray(self.ms)
-        return {"kind": self.kind, "model": self.name or self.kind, "frames": self.frames, "p50_ms": float(np.percentile(ms, 50)),
+        return {"kind": self.kind, "model": self.name or self.kind, "frames": self.frames,
+                "p50_ms": float(np.percentile(ms, 50)),
                 "p95_ms": float(np.percentile(ms, 95)), "fps": 1000.0 / float(ms.mean()),
                 "cpu_ms": float(np.median(self.cpu_ms)),
                 "detections": int(sum(self.counts.values())), "counts": dict(self.counts.most_common())}
