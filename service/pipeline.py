@@ -116,20 +116,24 @@ class Pipeline:
     (4) loop-closure candidates of the keyframe are verified and accepted ones become robust factors;
     (5) every frame is recorded relative to its keyframe, so the full trajectory follows the graph.
 
-    The mapping of a keyframe (object detection when the frame has none, NPDA, tracks, clustering; loop
-    candidates and their geometric verification) runs on a mapping thread while the next frames are
-    tracked; its landmark measurements and loop factors enter the graph when the keyframe ``MAPPING_LAG``
+    The mapping of a keyframe (object detection when the frame has none, on a detector thread; NPDA, tracks,
+    clustering; loop candidates and their geometric verification) runs on a mapping thread while the next
+    frames are tracked; its landmark measurements and loop factors enter the graph when the keyframe ``MAPPING_LAG``
     later is added (or on ``flush``). That point is fixed and the jobs read only what they were given, so
     the result is the same with the thread (``background=True``, the service) or with each job run at once.
     """
 
     def __init__(self, settings: Settings, background: bool = False):
         self.settings = settings
-        # One mapping thread, jobs in submission order: a keyframe's detection, then its objects, then its loop
-        # verification. More threads measured worse: they compete with ingest and queries for the GIL and
-        # the two cores (status p99 under overload 125-140 ms with three, 93 ms with one).
+        # One mapping thread, jobs in submission order: a keyframe's objects, then its loop verification. More
+        # mapping threads measured worse: they compete with ingest and queries for the GIL and the two cores
+        # (status p99 under overload 125-140 ms with three, 93 ms with one). The detector has a thread of its
+        # own: onnxruntime releases the GIL, so detecting keyframe k+1 overlaps associating keyframe k
+        # (keyframe mapping 11.2-12.4 keyframes/s instead of 10.3-10.9 on 7-Scenes, `bench stages`).
         self._mapping: Executor = ThreadPoolExecutor(1, thread_name_prefix="objslam-mapping") if background \
             else InlineExecutor()
+        self._detecting: Executor = ThreadPoolExecutor(1, thread_name_prefix="objslam-detector") if background \
+            else self._mapping
         self._pending: deque[dict[str, Future]] = deque()  # per keyframe, oldest first: its unapplied mapping jobs
         self._objects_view: list = []  # the objects as of the last applied mapping (read by object_list)
         self.mapping_errors = 0
@@ -256,7 +260,7 @@ class Pipeline:
         """
         detections: Future
         if frame.detections is None and self.settings.detector.enabled:
-            detections = self._mapping.submit(self._detect, frame.rgb)
+            detections = self._detecting.submit(self._detect, frame.rgb)
         else:
             detections = Future()
             detections.set_result((frame.detections or [], {}))
@@ -364,6 +368,7 @@ class Pipeline:
 
     def close(self) -> None:
         """Stop the mapping thread (submitted jobs are finished first)."""
+        self._detecting.shutdown(wait=True)
         self._mapping.shutdown(wait=True)
 
     def _color_from_body(self) -> np.ndarray:
