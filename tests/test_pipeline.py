@@ -88,6 +88,26 @@ def test_object_mapping_in_background_gives_exactly_the_inline_result():
         background.close()
 
 
+@requires_redkitchen
+def test_detection_on_its_own_thread_gives_exactly_the_inline_result():
+    ds = open_dataset(str(REDKITCHEN))
+    settings = load_settings(None, {"loops": {"source": "off"}})
+    inline, background = Pipeline(settings), Pipeline(settings, background=True)
+    try:
+        frames = [ds.frame(i) for i in range(0, 120, 2)]
+        for p in (background, inline):
+            for frame in frames:
+                p.process(frame)
+            p.finish()
+        assert background._detecting is not background._mapping  # the detector thread was used
+        assert len(background.keyframe_detections) >= 8 and sum(background.detections_by_class.values()) >= 8
+        assert background.keyframe_detections == inline.keyframe_detections
+        assert background.object_list() == inline.object_list()
+        assert np.array_equal(inline.trajectory().poses, background.trajectory().poses)
+    finally:
+        background.close()
+
+
 def test_a_failing_object_mapping_is_counted_and_the_pipeline_goes_on(monkeypatch):
     p = Pipeline(load_settings(None, {"loops": {"source": "off"}}), background=True)
     try:
