@@ -129,7 +129,7 @@ class Pipeline:
         # mapping threads measured worse: they compete with ingest and queries for the GIL and the two cores
         # (status p99 under overload 125-140 ms with three, 93 ms with one). The detector has a thread of its
         # own: onnxruntime releases the GIL, so detecting keyframe k+1 overlaps associating keyframe k
-        # (keyframe mapping 11.2-12.4 keyframes/s instead of 10.3-10.9 on 7-Scenes, `bench stages`).
+        # (keyframe mapping on 7-Scenes 12.2 keyframes/s instead of 9.7-10.9, `bench stages`).
         self._mapping: Executor = ThreadPoolExecutor(1, thread_name_prefix="objslam-mapping") if background \
             else InlineExecutor()
         self._detecting: Executor = ThreadPoolExecutor(1, thread_name_prefix="objslam-detector") if background \
