@@ -261,13 +261,13 @@ def bench_policy_loops(dataset: DatasetsOpt = None,
                        steps: Annotated[int, typer.Option("--steps", help="policy training steps per map")] = 100_000,
                        init_from: Annotated[str, typer.Option(
                            "--init-from", help="checkpoint (.pt) that starts each policy; default: the shipped "
-                           "config1 policy ('' = from scratch)")] = "config1",
+                           "config1 policy, models/lc/config1.init.pt ('' = from scratch)")] = "config1",
                        write: WriteOpt = None) -> None:
     """Two passes per dataset: map + grid world, train a policy, re-run with policy loop closures."""
     from service.bench.policy_loops import run_policy_loops_bench
-    from service.lc_cli import POLICY_DIR
+    from service.lc_cli import INIT_CHECKPOINT, POLICY_DIR
 
-    start = POLICY_DIR / "config1.pt" if init_from == "config1" else Path(init_from) if init_from else None
+    start = POLICY_DIR / INIT_CHECKPOINT if init_from == "config1" else Path(init_from) if init_from else None
     run_policy_loops_bench(console, dataset, steps, write, start)
 
 

@@ -188,3 +188,16 @@ def test_place_and_action_aux_targets_and_a_warm_start_from_a_smaller_map(tmp_pa
     assert own["head.weight"].shape != small["head.weight"].shape  # 5 locations: its own policy head
     with pytest.raises(ValueError, match="aux_targets"):
         Trainer(TrainConfig(map="config2", total_steps=10, n_envs=2, minibatches=2, aux_targets="everything"))
+
+
+def test_the_shipped_init_checkpoint_starts_a_trainer_for_another_map():
+    """bench policy-loops and the README's two-pass workflow start from models/lc/config1.init.pt."""
+    from service.lc_cli import INIT_CHECKPOINT, POLICY_DIR
+
+    path = POLICY_DIR / INIT_CHECKPOINT
+    shipped = torch.load(path, weights_only=False)
+    trainer = Trainer(TrainConfig(map="config3", total_steps=100, n_envs=2, minibatches=2, b1=8, b2=24, threads=1,
+                                  init_from=str(path)))
+    own = trainer.actor.state_dict()
+    assert torch.equal(own["lstm.weight_hh_l0"], shipped["actor"]["lstm.weight_hh_l0"])
+    assert torch.equal(trainer.critic.state_dict()["lstm.weight_hh_l0"], shipped["critic"]["lstm.weight_hh_l0"])
