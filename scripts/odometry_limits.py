@@ -29,10 +29,7 @@ from graph.geometry import motion_magnitude, pose_from_tum, relative
 from graph.metrics import trajectory_error
 from perception.icp import icp_refine
 from service.sources import open_dataset
-
-
-def read_tum(path: Path) -> np.ndarray:
-    return np.array([pose_from_tum(row[1:]) for row in np.loadtxt(path)])
+from service.sources.tum import read_trajectory
 
 
 def offline_graph(odometry: np.ndarray, loops: list[tuple[int, int, np.ndarray]]) -> np.ndarray:
@@ -53,7 +50,7 @@ def offline_graph(odometry: np.ndarray, loops: list[tuple[int, int, np.ndarray]]
 
 
 def loop_accuracy(run: Path, truth: np.ndarray) -> None:
-    odometry, trajectory = read_tum(run / "odometry.tum"), read_tum(run / "trajectory.tum")
+    odometry, trajectory = (read_trajectory(run / f"{name}.tum").poses for name in ("odometry", "trajectory"))
     n = len(odometry)
     accepted = [r for r in json.loads((run / "loops.json").read_text()) if r.get("accepted")]
     pairs = [(r["match_frame"], r["query_frame"], pose_from_tum(np.array(r["relative_pose"]))) for r in accepted]
