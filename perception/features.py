@@ -11,6 +11,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import distance_transform_edt
 
 log = logging.getLogger(__name__)
 
@@ -100,20 +101,34 @@ def object_pixels(depth_m: np.ndarray, box: Box, config: FeatureConfig) -> tuple
     return rows[keep], cols[keep]
 
 
-def room_behind(depth_m: np.ndarray, box: Box, front: float, ring: float = 0.15) -> float:
-    """Free depth behind an object whose near side is at depth ``front``: the 90th percentile of how far the
-    pixels of a ring around its box (``ring`` of the box size wide) lie behind ``front``, counting only those
-    behind it (a floor or table beside the object lies partly behind it too); inf when none are."""
+def room_behind(depth_m: np.ndarray, box: Box, rows: np.ndarray, cols: np.ndarray, ring: float = 0.15,
+                step: int = 4) -> float:
+    """Free depth behind an object's visible surface (its pixels ``rows``, ``cols``): the 90th percentile of how
+    far the pixels of a ring around its box (``ring`` of the box size wide) lie behind the nearest object pixel,
+    counting only those behind it (a floor or table beside the object lies partly behind it too); inf when none
+    are. Measured against the nearest pixel of the surface rather than its nearest point, so a screen on a wall
+    seen from below or at a slant is bounded by the wall just behind it. Pixels on a ``step`` grid.
+    """
     w, h = box[2] - box[0], box[3] - box[1]
     outer = box_window(depth_m.shape, (box[0] - ring * w, box[1] - ring * h, box[2] + ring * w, box[3] + ring * h))
     inner = box_window(depth_m.shape, box)
-    if outer is None or inner is None:
+    if outer is None or inner is None or len(rows) == 0:
         return np.inf
     y1, y2, x1, x2 = outer
-    patch = depth_m[y1:y2, x1:x2].copy()
+    patch = depth_m[y1:y2:step, x1:x2:step].copy()
+    surface = np.full(patch.shape, np.nan, np.float32)
+    some = stride_subsample(len(rows), surface.size)  # enough to mark most cells the object covers
+    r, c = rows[some], cols[some]
+    surface[(r - y1) // step, (c - x1) // step] = depth_m[r, c]
     iy1, iy2, ix1, ix2 = inner
-    patch[iy1 - y1:iy2 - y1, ix1 - x1:ix2 - x1] = np.nan
-    behind = patch[np.isfinite(patch) & (patch > front + 0.01)] - front
+    patch[-(-(iy1 - y1) // step):-(-(iy2 - y1) // step), -(-(ix1 - x1) // step):-(-(ix2 - x1) // step)] = np.nan
+    is_surface = np.isfinite(surface)
+    if not is_surface.any():
+        return np.inf
+    ring_pixels = np.isfinite(patch)
+    _, (ny, nx) = distance_transform_edt(~is_surface, return_indices=True)
+    gap = patch[ring_pixels] - surface[ny[ring_pixels], nx[ring_pixels]]
+    behind = gap[gap > 0.01]
     return float(np.percentile(behind, 90)) if behind.size else np.inf
 
 
@@ -122,20 +137,22 @@ def complete_amodal(points: np.ndarray, label: str, track_id: int, shift: float,
     """A camera-frame view's feature vector completed behind its visible surface.
 
     A depth camera sees the near side of an object. Assuming it is about as deep as it is wide (horizontally,
-    camera x), its depth is sqrt(12) times the horizontal standard deviation of the points, bounded by the
-    free depth ``room`` behind it (a screen on a wall cannot extend into the wall). Along the viewing ray the
-    centre lies ``shift`` standard deviations behind the near side (10th percentile), at most half the depth,
-    and the spread is that of a uniform extent of that depth; across the ray the points' own statistics stay.
-    Pixels of a supporting surface that join the object's depth segment then no longer stretch it.
+    camera x), its depth is sqrt(12) times the horizontal standard deviation of the points, bounded by how deep
+    the visible surface already reaches along the viewing ray (10th to 90th percentile) plus the free depth
+    ``room`` behind it (a screen on a wall cannot extend into the wall). Along the viewing ray the centre lies
+    ``shift`` standard deviations behind the near side (10th percentile), at most half the depth, and the spread
+    is that of a uniform extent of that depth; across the ray the points' own statistics stay. Pixels of a
+    supporting surface that join the object's depth segment then no longer stretch it.
     """
     f = feature_from_points(points, label, track_id)
     if f is None:
         return None
     ray = f.mean / np.linalg.norm(f.mean)
     along = points @ ray
+    near, far = np.percentile(along, [10, 90])
     sx = float(np.sqrt(f.cov[0, 0]))
-    depth = min(np.sqrt(12.0) * sx, room)
-    centre = float(np.percentile(along, 10)) + min(shift * sx, depth / 2.0)
+    depth = min(np.sqrt(12.0) * sx, float(far - near) + room)
+    centre = float(near) + min(shift * sx, depth / 2.0)
     P = np.eye(3) - np.outer(ray, ray)
     mean = P @ f.mean + centre * ray
     cov = P @ f.cov @ P + depth ** 2 / 12.0 * np.outer(ray, ray)
@@ -180,8 +197,7 @@ def detection_feature(depth_m: np.ndarray, K: np.ndarray, box: Box, label: str, 
     points = backproject(depth_m, K, rows[idx], cols[idx])
     if config.amodal is None or len(points) < 3:
         return feature_from_points(points, label, track_id)
-    front = float(np.percentile(points[:, 2], 10))
-    return complete_amodal(points, label, track_id, config.amodal, room_behind(depth_m, box, front))
+    return complete_amodal(points, label, track_id, config.amodal, room_behind(depth_m, box, rows, cols))
 
 
 def feature_from_points(points: np.ndarray, label: str, track_id: int = -1) -> FeatureVector | None:

@@ -112,3 +112,26 @@ def test_amodal_depth_is_bounded_by_the_wall_behind_a_flat_object() -> None:
     f = detection_feature(depth, K, (30.0, 20.0, 50.0, 40.0), "tv", 1, FeatureConfig(gap_m=0.02))
     assert f is not None
     assert 2.0 < f.mean[2] <= 2.026 and f.var[2] <= 0.05**2 / 12 + 1e-9
+
+
+def _pitched_plane_depth(z0: float, slope: float, shape: tuple[int, int] = (60, 80)) -> np.ndarray:
+    """Depth of the plane z = z0 + slope * y (camera frame: a wall seen by a camera pitched down), ray by ray."""
+    v = (np.arange(shape[0]) - K[1, 2]) / K[1, 1]
+    return np.tile((z0 / (1.0 - slope * v)).astype(np.float32)[:, None], (1, shape[1]))
+
+
+def test_amodal_depth_of_a_screen_on_a_wall_seen_from_below_is_bounded_by_the_wall_just_behind_it() -> None:
+    """A wide screen 4 cm in front of a wall that the camera sees pitched by 30 degrees: the wall below the screen
+    lies ~0.3 m behind the screen's nearest row, but only ~5 cm behind the screen itself, so the completed depth
+    along the ray is the screen's own visible depth span plus that gap, not the screen's width."""
+    slope, gap = np.tan(np.radians(30.0)), 0.04 / np.cos(np.radians(30.0))
+    depth = _pitched_plane_depth(2.0, slope)
+    depth[10:40, 10:70] = _pitched_plane_depth(2.0 - gap, slope)[10:40, 10:70]
+    box = (10.0, 10.0, 70.0, 40.0)
+    f = detection_feature(depth, K, box, "tv", 1, FeatureConfig())
+    plain = detection_feature(depth, K, box, "tv", 1, FeatureConfig(amodal=None))
+    assert f is not None and plain is not None
+    ray = plain.mean / np.linalg.norm(plain.mean)
+    visible_sd, completed_sd = np.sqrt(ray @ plain.cov @ ray), np.sqrt(ray @ f.cov @ ray)
+    assert completed_sd <= visible_sd + 0.03
+    assert 0.0 <= (f.mean - plain.mean) @ ray < 0.05  # the centre moves back by less than the gap to the wall

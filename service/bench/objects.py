@@ -121,8 +121,8 @@ def run_objects_bench(console: Console, seeds: list[int], frames: int, write: Pa
              f"centroid lies inside the true box grown by 0.25 m (one-to-one); unmatched mapped objects are false. "
              f"Mean ground-plane IoU by ellipse scale: {iou_note}. Centroid error is 3D, the mapped "
              f"object centre vs the box centre. Each view is completed amodally (`FeatureConfig.amodal`: the "
-             f"centre sqrt(3) horizontal std behind the near side, as deep as wide, bounded by the depth around "
-             f"the box); with the visible points only: mean IoU {np.mean(visible_only['iou']):.2f}, median centroid "
+             f"centre sqrt(3) horizontal std behind the near side, as deep as wide, at most as deep as the visible "
+             f"surface reaches plus the free depth between it and the background around the box); with the visible points only: mean IoU {np.mean(visible_only['iou']):.2f}, median centroid "
              f"error {np.median(visible_only['error']):.3f} m, {len(visible_only['iou'])} of "
              f"{visible_only['mapped']} mapped objects matched.")
     command = "objslam bench objects --seeds " + ",".join(map(str, seeds)) + \
