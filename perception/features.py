@@ -26,8 +26,16 @@ class FeatureConfig:
     """Central fraction (per side) of the box whose median depth anchors the object's depth segment."""
     gap_m: float = 0.05
     """A jump larger than this between sorted box depths separates the object from its background."""
+    pixels: int | None = 10000
+    """A box's pixels are taken on a grid coarse enough to give at most about this many (None: every pixel)."""
     max_points: int = 400
     """Back-projected points kept per detection (deterministic stride), so every view weighs alike."""
+    support_tilt_deg: float | None = 45.0
+    """Drop the pixels of the surface an object stands on (``without_support``): the dominant plane of the ring
+    around the box, when its normal lies within this angle of the camera's vertical axis (a roughly upright
+    camera: a floor or a table top, not a wall). None keeps them."""
+    support_tolerance_m: float = 0.015
+    """Object pixels within this distance of the support plane belong to it."""
     amodal: float | None = float(np.sqrt(3.0))
     """Amodal completion of a view (``complete_amodal``): the object's centre lies this many horizontal
     standard deviations behind its near side (sqrt(3): half the width of a uniform extent, as for a box seen
@@ -67,14 +75,17 @@ def box_window(shape: tuple[int, ...], box: Box, fraction: float = 1.0) -> tuple
     return (y1, y2, x1, x2) if x2 > x1 and y2 > y1 else None
 
 
-def box_pixels(depth_m: np.ndarray, box: Box, fraction: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Rows and columns of the valid depth pixels inside the central ``fraction`` of a box."""
+def box_pixels(depth_m: np.ndarray, box: Box, fraction: float = 1.0,
+               most: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of the valid depth pixels inside the central ``fraction`` of a box; with ``most``, on a
+    regular grid coarse enough to give at most about that many (a large box's statistics need not every pixel)."""
     win = box_window(depth_m.shape, box, fraction)
     if win is None:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     y1, y2, x1, x2 = win
-    rows, cols = np.nonzero(np.isfinite(depth_m[y1:y2, x1:x2]))
-    return rows + y1, cols + x1
+    step = max(1, int(np.ceil(np.sqrt((y2 - y1) * (x2 - x1) / most)))) if most else 1
+    rows, cols = np.nonzero(np.isfinite(depth_m[y1:y2:step, x1:x2:step]))
+    return rows * step + y1, cols * step + x1
 
 
 def dominant_depth_mask(depths: np.ndarray, anchor: float, gap_m: float) -> np.ndarray:
@@ -92,10 +103,10 @@ def dominant_depth_mask(depths: np.ndarray, anchor: float, gap_m: float) -> np.n
 
 def object_pixels(depth_m: np.ndarray, box: Box, config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
     """The box's valid pixels in the dominant depth segment anchored at the central median (SPEC 6.5)."""
-    rows, cols = box_pixels(depth_m, box)
+    rows, cols = box_pixels(depth_m, box, most=config.pixels)
     if len(rows) == 0:
         return rows, cols
-    cr, cc = box_pixels(depth_m, box, config.anchor_fraction)
+    cr, cc = box_pixels(depth_m, box, config.anchor_fraction, most=config.pixels)
     anchor = float(np.median(depth_m[cr, cc])) if len(cr) else float(np.median(depth_m[rows, cols]))
     keep = dominant_depth_mask(depth_m[rows, cols], anchor, config.gap_m)
     return rows[keep], cols[keep]
@@ -179,11 +190,82 @@ def stride_subsample(n: int, k: int) -> np.ndarray:
     return np.linspace(0, n - 1, k).round().astype(np.int64)
 
 
+def ring_pixels(shape: tuple[int, ...], box: Box, ring: float = 0.15,
+                most: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns of a ring around a box, ``ring`` of the box size wide (clipped to the image); with
+    ``most``, on a regular grid coarse enough to give about that many."""
+    w, h = box[2] - box[0], box[3] - box[1]
+    outer = box_window(shape, (box[0] - ring * w, box[1] - ring * h, box[2] + ring * w, box[3] + ring * h))
+    inner = box_window(shape, box)
+    if outer is None or inner is None:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    y1, y2, x1, x2 = outer
+    area = (y2 - y1) * (x2 - x1) - (inner[1] - inner[0]) * (inner[3] - inner[2])
+    step = max(1, int(np.sqrt(area / most))) if most else 1
+    rows, cols = np.meshgrid(np.arange(y1, y2, step), np.arange(x1, x2, step), indexing="ij")
+    outside = (rows < inner[0]) | (rows >= inner[1]) | (cols < inner[2]) | (cols >= inner[3])
+    return rows[outside], cols[outside]
+
+
+def support_plane(depth_m: np.ndarray, K: np.ndarray, box: Box, max_tilt_deg: float, inlier_m: float = 0.01,
+                  min_share: float = 0.3, samples: int = 1000, hypotheses: int = 64) -> np.ndarray | None:
+    """The plane ``(n, d)`` (n . p + d = 0, camera frame) an object in ``box`` stands on, or None.
+
+    RANSAC (fixed seed: deterministic) over the ring of pixels around the box, among the planes whose normal
+    lies within ``max_tilt_deg`` of the camera's vertical axis (so a wall behind the object is never taken);
+    the best must hold ``min_share`` of the ring's points within ``inlier_m``.
+    """
+    rows, cols = ring_pixels(depth_m.shape, box, most=samples)
+    valid = np.isfinite(depth_m[rows, cols])
+    if valid.sum() < 50:
+        return None
+    points = backproject(depth_m, K, rows[valid], cols[valid])
+    triplets = points[np.random.default_rng(0).integers(0, len(points), (hypotheses, 3))]
+    normals = np.cross(triplets[:, 1] - triplets[:, 0], triplets[:, 2] - triplets[:, 0])
+    length = np.linalg.norm(normals, axis=1)
+    ok = length > 1e-9
+    if not ok.any():
+        return None
+    normals = normals[ok] / length[ok, None]
+    level = np.abs(normals[:, 1]) >= np.cos(np.radians(max_tilt_deg))
+    if not level.any():
+        return None
+    normals, anchors = normals[level], triplets[ok][level, 0]
+    offsets = -np.einsum("ij,ij->i", normals, anchors)
+    inliers = (np.abs(points @ normals.T + offsets) < inlier_m).sum(axis=0)
+    best = int(np.argmax(inliers))
+    return np.r_[normals[best], offsets[best]] if inliers[best] >= min_share * len(points) else None
+
+
+def without_support(depth_m: np.ndarray, K: np.ndarray, box: Box, rows: np.ndarray, cols: np.ndarray,
+                    config: FeatureConfig, min_left: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """The object pixels minus those on the floor or table it stands on (``FeatureConfig.support_tilt_deg``).
+
+    A surface joined to the object's depth segment stretches its extent (a cup's box holds the table around
+    its foot). Nothing is dropped when that would leave less than ``min_left`` of the pixels: an object lying
+    flat on the plane, or a plane that is the object.
+    """
+    if config.support_tilt_deg is None or len(rows) < 20:
+        return rows, cols
+    plane = support_plane(depth_m, K, box, config.support_tilt_deg)
+    if plane is None:
+        return rows, cols
+    off = np.abs(backproject(depth_m, K, rows, cols) @ plane[:3] + plane[3]) > config.support_tolerance_m
+    return (rows[off], cols[off]) if off.sum() >= min_left * len(rows) else (rows, cols)
+
+
+def object_points(depth_m: np.ndarray, K: np.ndarray, box: Box,
+                  config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
+    """A detection's object pixels: its depth segment (``object_pixels``) without its support surface."""
+    rows, cols = object_pixels(depth_m, box, config)
+    return without_support(depth_m, K, box, rows, cols, config)
+
+
 def backproject_detection(
     depth_m: np.ndarray, K: np.ndarray, T_wc: np.ndarray, box: Box, config: FeatureConfig
 ) -> np.ndarray:
     """World points (N, 3) of a detection's object pixels with the camera pose ``T_wc`` (Sec. 2.4.4)."""
-    rows, cols = object_pixels(depth_m, box, config)
+    rows, cols = object_points(depth_m, K, box, config)
     idx = stride_subsample(len(rows), config.max_points)
     return transform(T_wc, backproject(depth_m, K, rows[idx], cols[idx]))
 
@@ -192,7 +274,7 @@ def detection_feature(depth_m: np.ndarray, K: np.ndarray, box: Box, label: str, 
                       config: FeatureConfig) -> FeatureVector | None:
     """The camera-frame feature vector of a detection (amodally completed when configured); None when too few
     points."""
-    rows, cols = object_pixels(depth_m, box, config)
+    rows, cols = object_points(depth_m, K, box, config)
     idx = stride_subsample(len(rows), config.max_points)
     points = backproject(depth_m, K, rows[idx], cols[idx])
     if config.amodal is None or len(points) < 3:

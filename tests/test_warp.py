@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from graph.geometry import inverse
 from perception.features import (FeatureConfig, backproject_detection, detection_feature, dominant_depth_mask,
+                                 object_points, support_plane,
                                  feature_from_points)
 from perception.warp import needs_warp, warp_box, warp_depth
 from service.sources import open_dataset
@@ -135,3 +138,24 @@ def test_amodal_depth_of_a_screen_on_a_wall_seen_from_below_is_bounded_by_the_wa
     visible_sd, completed_sd = np.sqrt(ray @ plain.cov @ ray), np.sqrt(ray @ f.cov @ ray)
     assert completed_sd <= visible_sd + 0.03
     assert 0.0 <= (f.mean - plain.mean) @ ray < 0.05  # the centre moves back by less than the gap to the wall
+
+
+def test_the_floor_an_object_stands_on_is_dropped_from_its_pixels() -> None:
+    """A cube standing on the floor, its box holding the floor around its foot, joined to its depth segment: the
+    floor (the ring's dominant plane, horizontal for an upright camera) leaves the object's pixels, so the
+    object's vertical extent is its own; a wall (a vertical plane) around a screen is not taken for a support."""
+    depth = np.full((60, 80), 4.0, np.float32)  # a far wall above the floor
+    height = 0.21  # the floor below the camera: depth f * h / (row - cy) = 2.0 m at row 40, the cube's foot
+    depth[40:] = (K[1, 1] * height / (np.arange(40, 60) - K[1, 2]))[:, None]
+    depth[20:40, 30:50] = 2.0  # the cube's face
+    box = (28.0, 18.0, 52.0, 46.0)
+    config = FeatureConfig(gap_m=0.25)  # coarse pixels: the floor's depth steps up to 0.2 m
+    kept = object_points(depth, K, box, config)
+    joined = object_points(depth, K, box, replace(config, support_tilt_deg=None))
+    assert (joined[0] >= 41).any()  # without the support check the floor joins the cube's segment
+    assert len(kept[0]) and kept[0].max() <= 40 and kept[1].min() >= 30 and kept[1].max() < 50
+    plane = support_plane(depth, K, box, 45.0)
+    assert plane is not None and abs(plane[1]) > 0.99 and abs(plane[3]) == pytest.approx(height, abs=0.01)
+    wall = np.full((60, 80), 2.05, np.float32)
+    wall[20:40, 30:50] = 2.0
+    assert support_plane(wall, K, (30.0, 20.0, 50.0, 40.0), 45.0) is None

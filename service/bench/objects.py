@@ -122,7 +122,9 @@ def run_objects_bench(console: Console, seeds: list[int], frames: int, write: Pa
              f"Mean ground-plane IoU by ellipse scale: {iou_note}. Centroid error is 3D, the mapped "
              f"object centre vs the box centre. Each view is completed amodally (`FeatureConfig.amodal`: the "
              f"centre sqrt(3) horizontal std behind the near side, as deep as wide, at most as deep as the visible "
-             f"surface reaches plus the free depth between it and the background around the box); with the visible points only: mean IoU {np.mean(visible_only['iou']):.2f}, median centroid "
+             f"surface reaches plus the free depth between it and the background around the box), after the pixels "
+             f"of the floor or table it stands on are dropped (`FeatureConfig.support_tilt_deg`); with the visible "
+             f"points only: mean IoU {np.mean(visible_only['iou']):.2f}, median centroid "
              f"error {np.median(visible_only['error']):.3f} m, {len(visible_only['iou'])} of "
              f"{visible_only['mapped']} mapped objects matched.")
     command = "objslam bench objects --seeds " + ",".join(map(str, seeds)) + \
