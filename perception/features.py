@@ -30,6 +30,9 @@ class FeatureConfig:
     """A box's pixels are taken on a grid coarse enough to give at most about this many (None: every pixel)."""
     max_points: int = 400
     """Back-projected points kept per detection (deterministic stride), so every view weighs alike."""
+    cut_weight: float = 0.25
+    """A view whose box the image border cuts shows part of the object: its points weigh this much in the pooled
+    Gaussians (``ObjectMapper``), so whole views place and size the object (`objslam bench objects`)."""
     support_tilt_deg: float | None = 45.0
     """Drop the pixels of the surface an object stands on (``without_support``): the dominant plane of the ring
     around the box, when its normal lies within this angle of the camera's vertical axis (a roughly upright

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -22,6 +22,13 @@ BORDER_PX = 4
 
 def _inside(box, width: int, height: int, margin: float) -> bool:
     return box[0] >= margin and box[1] >= margin and box[2] <= width - margin and box[3] <= height - margin
+
+
+def _weighed(f: FeatureVector | None, whole: bool, cut_weight: float) -> FeatureVector | None:
+    """A view's feature vector, its point count scaled by ``cut_weight`` when the image border cuts its box."""
+    if f is None or whole:
+        return f
+    return replace(f, n=max(1, int(round(f.n * cut_weight))))
 
 
 @dataclass
@@ -63,12 +70,13 @@ class ObjectMapper:
                               inverse(pose) @ self._prev.pose, self.npda).pairs
         self.associations += len(pairs)
         ids = self.tracker.update(index, [d.label for d in detections], pairs)
-        local = [detection_feature(depth_m, K, d.box, d.label, t, self.features) for d, t in zip(detections, ids)]
-        obs = [None if f is None else transform_feature(self._store(index, f), pose) for f in local]
         h, w = depth_m.shape[:2]
+        whole = [_inside(d.box, w, h, BORDER_PX) for d in detections]
+        local = [_weighed(detection_feature(depth_m, K, d.box, d.label, t, self.features), inside,
+                          self.features.cut_weight) for d, t, inside in zip(detections, ids, whole)]
+        obs = [None if f is None else transform_feature(self._store(index, f), pose) for f in local]
         self.last_observations = [(t, f.mean, float(np.sqrt(np.linalg.eigvalsh(f.cov)[-1])))
-                                  for f, t, d in zip(local, ids, detections)
-                                  if f is not None and _inside(d.box, w, h, BORDER_PX)]
+                                  for f, t, inside in zip(local, ids, whole) if f is not None and inside]
         self.clusterer.add([self.tracker.observe(t, f) for t, f in zip(ids, obs)] + self.tracker.close_stale(index))
         self._prev = _Keyframe(detections, depth_m, pose, index)
         return self.clusterer.step(obs, [self.tracker.associated(t) for t in ids])

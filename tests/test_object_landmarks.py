@@ -3,6 +3,8 @@ and the pipeline keeping both in step with the optimisation."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -10,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from graph.object_landmarks import LandmarkConfig, ObjectLandmarks
 from graph.pose_graph import PoseGraph
 from perception.clustering import ObjectEllipsoid
-from perception.features import transform_feature
+from perception.features import FeatureConfig, transform_feature
 from perception.object_map import ObjectMapper
 from service.bench.association import load_scene
 from service.config import load_settings
@@ -153,3 +155,20 @@ def test_the_pipeline_puts_objects_in_the_graph_and_re_clusters_after_loop_closu
     # every landmark measurement the bookkeeping holds is a live factor of the landmark it names
     assert all(i is not None and i not in p.graph._removed and p.graph.factors[i].b == j
                for j, i in p.landmarks.assigned.values() if j in p.graph.landmarks_in_solver())
+
+
+def test_a_view_cut_by_the_image_border_weighs_less_in_the_pooled_object(scene):
+    """The same box seen whole and cut by the border: the cut view's points count ``cut_weight`` as much, so
+    the object's pooled Gaussian leans on the whole view; only whole views measure landmarks."""
+    j = next(i for i, dets in enumerate(scene.dets) if any(
+        d.box[0] > 10 and d.box[2] < scene.depth_m(i).shape[1] - 10 for d in dets))
+    whole = next(d for d in scene.dets[j] if d.box[0] > 10 and d.box[2] < scene.depth_m(j).shape[1] - 10)
+    cut = replace(whole, box=(0.0, *whole.box[1:]))
+    counts = {}
+    for weight in (1.0, 0.25):
+        mapper = ObjectMapper(features=FeatureConfig(cut_weight=weight))
+        mapper.add_keyframe(0, [whole, cut], scene.depth_m(j), scene.K, scene.poses[j])
+        counts[weight] = [f.n for f in mapper._obs_local]
+        assert len(mapper.last_observations) == 1  # the whole view only
+    assert counts[1.0][0] == counts[0.25][0]
+    assert counts[0.25][1] == round(0.25 * counts[1.0][1])
