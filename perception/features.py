@@ -134,14 +134,14 @@ def room_behind(depth_m: np.ndarray, box: Box, rows: np.ndarray, cols: np.ndarra
     some = stride_subsample(len(rows), surface.size)  # enough to mark most cells the object covers
     r, c = rows[some], cols[some]
     surface[(r - y1) // step, (c - x1) // step] = depth_m[r, c]
-    iy1, iy2, ix1, ix2 = inner
-    patch[-(-(iy1 - y1) // step):-(-(iy2 - y1) // step), -(-(ix1 - x1) // step):-(-(ix2 - x1) // step)] = np.nan
+    iy1, iy2, ix1, ix2 = (-(-(v - o) // step) for v, o in zip(inner, (y1, y1, x1, x1)))  # first grid cell at/after
+    patch[iy1:iy2, ix1:ix2] = np.nan  # the ring only
     is_surface = np.isfinite(surface)
     if not is_surface.any():
         return np.inf
-    ring_pixels = np.isfinite(patch)
-    _, (ny, nx) = distance_transform_edt(~is_surface, return_indices=True)
-    gap = patch[ring_pixels] - surface[ny[ring_pixels], nx[ring_pixels]]
+    around = np.isfinite(patch)
+    _, (ny, nx) = distance_transform_edt(~is_surface, return_indices=True)  # each cell's nearest surface cell
+    gap = patch[around] - surface[ny[around], nx[around]]
     behind = gap[gap > 0.01]
     return float(np.percentile(behind, 90)) if behind.size else np.inf
 
