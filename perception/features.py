@@ -78,6 +78,15 @@ def box_window(shape: tuple[int, ...], box: Box, fraction: float = 1.0) -> tuple
     return (y1, y2, x1, x2) if x2 > x1 and y2 > y1 else None
 
 
+def ring_windows(shape: tuple[int, ...], box: Box, ring: float) -> tuple[tuple[int, int, int, int], ...] | None:
+    """The windows (y1, y2, x1, x2) of a box grown by ``ring`` of its size on each side and of the box itself,
+    clipped to the image: the ring around the box lies between them. None when either is empty."""
+    w, h = box[2] - box[0], box[3] - box[1]
+    outer = box_window(shape, (box[0] - ring * w, box[1] - ring * h, box[2] + ring * w, box[3] + ring * h))
+    inner = box_window(shape, box)
+    return None if outer is None or inner is None else (outer, inner)
+
+
 def box_pixels(depth_m: np.ndarray, box: Box, fraction: float = 1.0,
                most: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Rows and columns of the valid depth pixels inside the central ``fraction`` of a box; with ``most``, on a
@@ -123,12 +132,10 @@ def room_behind(depth_m: np.ndarray, box: Box, rows: np.ndarray, cols: np.ndarra
     are. Measured against the nearest pixel of the surface rather than its nearest point, so a screen on a wall
     seen from below or at a slant is bounded by the wall just behind it. Pixels on a ``step`` grid.
     """
-    w, h = box[2] - box[0], box[3] - box[1]
-    outer = box_window(depth_m.shape, (box[0] - ring * w, box[1] - ring * h, box[2] + ring * w, box[3] + ring * h))
-    inner = box_window(depth_m.shape, box)
-    if outer is None or inner is None or len(rows) == 0:
+    windows = ring_windows(depth_m.shape, box, ring)
+    if windows is None or len(rows) == 0:
         return np.inf
-    y1, y2, x1, x2 = outer
+    (y1, y2, x1, x2), inner = windows
     patch = depth_m[y1:y2:step, x1:x2:step].copy()
     surface = np.full(patch.shape, np.nan, np.float32)
     some = stride_subsample(len(rows), surface.size)  # enough to mark most cells the object covers
@@ -197,12 +204,10 @@ def ring_pixels(shape: tuple[int, ...], box: Box, ring: float = 0.15,
                 most: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Rows and columns of a ring around a box, ``ring`` of the box size wide (clipped to the image); with
     ``most``, on a regular grid coarse enough to give about that many."""
-    w, h = box[2] - box[0], box[3] - box[1]
-    outer = box_window(shape, (box[0] - ring * w, box[1] - ring * h, box[2] + ring * w, box[3] + ring * h))
-    inner = box_window(shape, box)
-    if outer is None or inner is None:
+    windows = ring_windows(shape, box, ring)
+    if windows is None:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    y1, y2, x1, x2 = outer
+    (y1, y2, x1, x2), inner = windows
     area = (y2 - y1) * (x2 - x1) - (inner[1] - inner[0]) * (inner[3] - inner[2])
     step = max(1, int(np.sqrt(area / most))) if most else 1
     rows, cols = np.meshgrid(np.arange(y1, y2, step), np.arange(x1, x2, step), indexing="ij")
