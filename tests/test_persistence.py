@@ -247,14 +247,15 @@ def _replay(endpoint: str, max_frames: int, rate: float | None = None) -> subpro
                     endpoint, "--robot", "ptest", stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 
-def _wait_handled(session, frames: int, timeout: float = 90.0) -> dict:
+def _wait_handled(session, frames: int, timeout: float = 90.0, replay: subprocess.Popen | None = None) -> dict:
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         status = _get(session, "objslam/ptest/status")
         if status and status["frames_processed"] + status["frames_rejected_total"] >= frames:
             return status
         time.sleep(0.1)
-    raise AssertionError(f"the service did not handle {frames} frames in {timeout} s: {status}")
+    said = replay.stdout.read() if replay is not None else ""  # e.g. its warning that no subscriber matched
+    raise AssertionError(f"the service did not handle {frames} frames in {timeout} s: {status}; replay: {said}")
 
 
 def _trajectory(session) -> np.ndarray:
@@ -286,7 +287,7 @@ def test_serve_resumes_after_sigterm_with_nothing_lost(router, tmp_path, referen
         _wait_for_service(session, "objslam/ptest/status")
         replay = _replay(endpoint, 90)
         assert replay.wait(timeout=120) == 0, replay.stdout.read()
-        before = _wait_handled(session, 90)
+        before = _wait_handled(session, 90, replay=replay)
         rows = _trajectory(session)
         loops = _get(session, "objslam/ptest/loops")["loops"]
         assert before["frames_processed"] == 90 and before["persistence"]["snapshots_written"] >= 1
@@ -306,7 +307,7 @@ def test_serve_resumes_after_sigterm_with_nothing_lost(router, tmp_path, referen
 
         replay = _replay(endpoint, FRAMES)  # the client starts over: frames already mapped are rejected
         assert replay.wait(timeout=120) == 0, replay.stdout.read()
-        final = _wait_handled(session, 90 + FRAMES)
+        final = _wait_handled(session, 90 + FRAMES, replay=replay)
         assert final["frames_processed"] == FRAMES
         assert final["frames_rejected"] == {"duplicate_timestamp": 1, "out_of_order": 89}
         _same_poses(_trajectory(session), reference["after"][FRAMES])
@@ -352,7 +353,7 @@ def test_serve_killed_mid_run_loses_at_most_n_keyframes_and_keeps_the_prefix(rou
 
         replay = _replay(endpoint, FRAMES)
         assert replay.wait(timeout=120) == 0, replay.stdout.read()
-        final = _wait_handled(session, after["frames_received"] + FRAMES)
+        final = _wait_handled(session, after["frames_received"] + FRAMES, replay=replay)
         assert final["frames_processed"] == FRAMES
         _same_poses(_trajectory(session), reference["after"][FRAMES])
     finally:
