@@ -113,7 +113,8 @@ def replay(dataset: Annotated[str, typer.Argument(help="directory or synthetic:N
     if rate is not None and max_rate:
         raise UserError("--rate and --max-rate are exclusive")
     settings = _settings(config, robot, connect, None, mode)
-    data = open_dataset(dataset, _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy))
+    data = open_dataset(dataset, _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy),
+                        settings.camera.model_dump())
     session = open_session(settings.zenoh, "client")
     try:
         pub = frame_publisher(session, f"{settings.key_prefix}/rgbd")

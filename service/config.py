@@ -141,7 +141,8 @@ class PersistenceSettings(BaseModel):
 
 
 class CameraDefaults(BaseModel):
-    """Camera used when a dataset has no camera.json (TUM defaults)."""
+    """Camera of a dataset directory without camera files (camera.json, a 7-Scenes camera-intrinsics.txt);
+    the `run` / `replay` flags --fx, --fy, --cx, --cy, --depth-scale override it. Defaults: TUM's."""
 
     fx: float = 525.0
     fy: float = 525.0

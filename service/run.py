@@ -28,7 +28,7 @@ def run_dataset(spec: str | Dataset, out: Path, settings: Settings, max_frames: 
     replay instead keeps at most ``window`` frames published and not yet completed (processed, rejected or
     dropped), below the queue's capacity, so no frame is dropped.
     """
-    dataset = open_dataset(spec, camera_overrides) if isinstance(spec, str) else spec
+    dataset = open_dataset(spec, camera_overrides, settings.camera.model_dump()) if isinstance(spec, str) else spec
     settings = settings.model_copy(update={"state_dir": None})  # a run starts a new map and keeps no snapshots
     session = open_session(settings.zenoh, "server", embedded=True)
     node = ServiceNode(settings, session)

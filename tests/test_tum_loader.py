@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import json
+import logging
 
 import cv2
 import numpy as np
 import pytest
 
+from service.config import load_settings
 from service.sources import DatasetError, open_dataset
 from graph.metrics import nearest_timestamps
 from tests.conftest import REDKITCHEN, requires_redkitchen
@@ -67,6 +69,23 @@ def test_without_camera_json_tum_defaults_and_flags_apply(tmp_path):
     assert ds.frame(0).detections is None and ds.frame(0).odometry is None
     ds = open_dataset(str(tmp_path), {"depth_scale": 1000.0, "fx": 300.0})
     assert ds.camera.depth_scale == 1000 and ds.camera.color.fx == 300
+
+
+def test_configured_camera_defaults_apply_without_camera_files_and_flags_override_them(tmp_path):
+    _write_tum(tmp_path / "d", camera=False, odometry=False, detections=False)
+    (tmp_path / "objslam.yaml").write_text("camera:\n  fx: 600.0\n  depth_scale: 1000.0\n")
+    defaults = load_settings(tmp_path / "objslam.yaml").camera.model_dump()
+    ds = open_dataset(str(tmp_path / "d"), None, defaults)
+    assert (ds.camera.color.fx, ds.camera.color.fy, ds.camera.depth_scale) == (600, 525, 1000)
+    ds = open_dataset(str(tmp_path / "d"), {"fx": 300.0}, defaults)
+    assert (ds.camera.color.fx, ds.camera.depth_scale) == (300, 1000)
+
+
+def test_flags_a_camera_file_makes_moot_are_reported(tmp_path, caplog):
+    _write_tum(tmp_path, odometry=False, detections=False)  # with camera.json
+    with caplog.at_level(logging.WARNING, logger="service.sources.tum"):
+        ds = open_dataset(str(tmp_path), {"fx": 300.0, "depth_scale": 1000.0}, {"fx": 700.0})
+    assert ds.camera.color.fx == 50 and "--depth-scale, --fx not applied" in caplog.text
 
 
 def test_missing_and_malformed_directories_give_clear_errors(tmp_path):

@@ -9,12 +9,14 @@ from service.sources.base import Dataset, DatasetError, ObjectTruth, Trajectory,
 __all__ = ["Dataset", "DatasetError", "ObjectTruth", "Trajectory", "WithoutOdometry", "open_dataset"]
 
 
-def open_dataset(spec: str, camera_overrides: dict[str, float] | None = None) -> Dataset:
-    """A dataset from ``synthetic:NAME?...`` or a directory path."""
+def open_dataset(spec: str, camera_overrides: dict[str, float] | None = None,
+                 camera_defaults: dict[str, float] | None = None) -> Dataset:
+    """A dataset from ``synthetic:NAME?...`` or a directory path; a directory without camera files uses the
+    ``camera_overrides`` (command-line flags) over the ``camera_defaults`` (the ``camera`` settings)."""
     if spec.startswith("synthetic:"):
         from service.sources.synthetic import parse_synthetic_spec
 
         return parse_synthetic_spec(spec)
     from service.sources.tum import TumDataset
 
-    return TumDataset(Path(spec), camera_overrides)
+    return TumDataset(Path(spec), camera_overrides, camera_defaults)

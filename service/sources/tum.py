@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 
 import cv2
@@ -12,6 +13,8 @@ from graph.geometry import pose_from_tum
 from graph.metrics import nearest_timestamps
 from perception.frame import CameraModel, Detection, Frame, Intrinsics
 from service.sources.base import Dataset, DatasetError, ObjectTruth, Trajectory
+
+log = logging.getLogger(__name__)
 
 MAX_TIME_DIFF_S = 0.02
 TUM_DEFAULT = {"fx": 525.0, "fy": 525.0, "cx": 319.5, "cy": 239.5, "depth_scale": 5000.0}
@@ -45,12 +48,13 @@ def read_trajectory(path: Path) -> Trajectory:
 class TumDataset(Dataset):
     """A TUM-layout directory: frames from associations.txt (or rgb.txt + depth.txt)."""
 
-    def __init__(self, root: Path, camera_overrides: dict[str, float] | None = None):
+    def __init__(self, root: Path, camera_overrides: dict[str, float] | None = None,
+                 camera_defaults: dict[str, float] | None = None):
         self.root = Path(root)
         if not self.root.is_dir():
             raise DatasetError(f"dataset directory not found: {self.root}")
         self.name = self.root.name
-        self.camera = load_camera(self.root, camera_overrides or {})
+        self.camera = load_camera(self.root, camera_overrides or {}, camera_defaults)
         self._times, self._rgb, self._depth = self._load_frames()
         self._odometry = self._load_odometry()
         self._detections = self._load_detections()
@@ -159,16 +163,27 @@ class TumDataset(Dataset):
         return [lists[j] if j >= 0 else [] for j in match]
 
 
-def load_camera(root: Path, overrides: dict[str, float]) -> CameraModel:
-    """camera.json, else the 7-Scenes ``camera-intrinsics.txt`` convention, else flags / TUM defaults."""
+def load_camera(root: Path, overrides: dict[str, float], defaults: dict[str, float] | None = None) -> CameraModel:
+    """camera.json, else the 7-Scenes ``camera-intrinsics.txt`` convention, else the flags (``overrides``) over
+    the configured ``defaults`` (the ``camera`` settings) over the TUM defaults. Flags a camera file makes
+    moot are reported, not silently dropped."""
     path = root / "camera.json"
     if path.is_file():
+        _report_ignored(overrides, set(), path)
         return _camera_from_json(_read_json(path), path)
     if (root / "camera-intrinsics.txt").is_file():
+        _report_ignored(overrides, {"depth_scale"}, root / "camera-intrinsics.txt")
         return _seven_scenes_camera(root / "camera-intrinsics.txt", overrides)
-    values = {**TUM_DEFAULT, **overrides}
+    values = {**TUM_DEFAULT, **(defaults or {}), **overrides}
     return CameraModel(Intrinsics(values["fx"], values["fy"], values["cx"], values["cy"]),
                        int(overrides.get("width", 640)), int(overrides.get("height", 480)), values["depth_scale"])
+
+
+def _report_ignored(overrides: dict[str, float], used: set[str], path: Path) -> None:
+    ignored = sorted(set(overrides) - used)
+    if ignored:
+        log.warning("%s defines the camera: %s not applied (edit or write camera.json instead)", path,
+                    ", ".join("--" + k.replace("_", "-") for k in ignored))
 
 
 def _camera_from_json(obj: dict, path: Path) -> CameraModel:
