@@ -112,6 +112,8 @@ def replay(dataset: Annotated[str, typer.Argument(help="directory or synthetic:N
 
     if rate is not None and max_rate:
         raise UserError("--rate and --max-rate are exclusive")
+    if rate is not None and rate <= 0:
+        raise UserError(f"--rate must be positive (got {rate:g})")
     settings = _settings(config, robot, connect, None, mode)
     data = open_dataset(dataset, _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy),
                         settings.camera.model_dump())

@@ -100,3 +100,11 @@ def test_status_without_a_service_fails_with_one_clear_line(tmp_path):
                          env={**os.environ, "OBJSLAM_ZENOH__QUERY_TIMEOUT_S": "1"})
     assert cli.returncode != 0
     assert "objslam: error:" in cli.stderr and len(cli.stderr.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize("args", [["--rate", "0"], ["--rate", "5", "--max-rate"]])
+def test_replay_with_an_invalid_rate_fails_with_one_clear_line(args):
+    cli = subprocess.run([sys.executable, "-m", "service", "replay", "synthetic:room?frames=3", *args],
+                         capture_output=True, text=True, timeout=60)
+    assert cli.returncode == 1 and "Traceback" not in cli.stderr
+    assert cli.stderr.strip().startswith("objslam: error: --rate") and len(cli.stderr.strip().splitlines()) == 1
