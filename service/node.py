@@ -69,7 +69,9 @@ class ServiceNode:
         self._stop = threading.Event()
         self._frame_done = threading.Condition()  # notified after each frame is processed, rejected or failed
         self._decoded: queue.Queue[tuple[Frame, float]] = queue.Queue(maxsize=2)  # decoder -> worker
-        self._last_version = self._last_loops = 0
+        self._last_version = 0
+        self._accepted_loops: set[int] = set()  # factor indices of the accepted loops last published
+        self._loops_key: tuple[int, int] = (0, 0)
         self._started = time.time()
         self._entities: list[Any] = []
         self._decoder = threading.Thread(target=self._decode_loop, name="objslam-decoder", daemon=True)
@@ -273,7 +275,7 @@ class ServiceNode:
         self.stats.restore_counters(state["stats"])
         self.queue.dropped = state["frames_dropped"]
         self._last_version = pipeline.object_map_version
-        self._last_loops = pipeline.loops.n_accepted if pipeline.loops is not None else 0
+        self._accepted_loops = {r["factor"] for r in pipeline.loop_records() if r["accepted"]}
 
     def _publish_summary(self) -> None:
         """Take the map's counts, objects and loop records for the queryables (worker thread, between frames).
@@ -307,21 +309,29 @@ class ServiceNode:
             return self._summary
 
     def _publish_changes(self) -> None:
-        """``events``: the object map after each re-clustering, and each newly accepted loop closure."""
+        """``events``: the object map after each re-clustering, the loop closures accepted since the last
+        event, and those retracted since (accepted earlier, removed when later loops contradicted them)."""
         summary = self.summary
-        version, loops = summary.object_map_version, summary.counts["loop_closures"]["accepted"]
         events = []
-        if version != self._last_version:
+        if summary.object_map_version != self._last_version:
             events.append({"type": "objects", "objects": summary.objects})
-        if loops != self._last_loops:
-            events.append({"type": "loop_closure", "accepted": loops,
-                           "latest": [r for r in summary.loops if r["accepted"]][-1:]})
-        self._last_version, self._last_loops = version, loops
+            self._last_version = summary.object_map_version
+        if summary.loops_key != self._loops_key:
+            events += self._loop_events(summary.loops)
+            self._loops_key = summary.loops_key
         for event in events:
             try:
                 self.events.put(json.dumps(event).encode())
             except zenoh.ZError as exc:
                 log.warning("could not publish event: %s", exc)
+
+    def _loop_events(self, records: list[dict]) -> list[dict]:
+        accepted = {r["factor"]: r for r in records if r["accepted"]}
+        new = [accepted[f] for f in sorted(accepted.keys() - self._accepted_loops)]
+        gone = [r for r in records if not r["accepted"] and r.get("factor") in self._accepted_loops]
+        self._accepted_loops = set(accepted)
+        events = [{"type": "loop_closure", "accepted": len(accepted), "latest": new}] if new else []
+        return events + ([{"type": "loop_retracted", "accepted": len(accepted), "retracted": gone}] if gone else [])
 
     # ------------------------------------------------------------ queries
 

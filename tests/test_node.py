@@ -1,13 +1,19 @@
-"""ServiceNode without zenoh traffic: replies never wait for the frame being processed."""
+"""ServiceNode: replies never wait for the frame being processed; the events it publishes over zenoh."""
 
 from __future__ import annotations
 
+import json
 import threading
 import time
+
+import pytest
 
 from service.config import load_settings
 from service.node import ServiceNode
 from service.protocol import encode_frame
+from service.replay import frame_publisher
+from service.sources import open_dataset
+from service.zenoh_session import open_session
 from tests.conftest import make_frame
 
 
@@ -43,3 +49,48 @@ def test_status_objects_and_loops_answer_while_the_pipeline_is_busy():
         node._stop.set()
         node._decoder.join(timeout=5)
         node._worker.join(timeout=5)
+
+
+def test_loop_events_name_each_accepted_loop_once_and_each_retraction():
+    node = ServiceNode(load_settings(None, {"detector": {"enabled": False}}), _NoSession())
+    first = [{"factor": 5, "accepted": True}, {"accepted": False, "reason": "too_few_inliers"}]
+    assert node._loop_events(first) == [{"type": "loop_closure", "accepted": 1, "latest": [first[0]]}]
+    assert node._loop_events(first) == []  # nothing new
+    later = [{"factor": 5, "accepted": False, "reason": "retracted_inconsistent"}, first[1],
+             {"factor": 9, "accepted": True}, {"factor": 7, "accepted": True}]
+    assert node._loop_events(later) == [
+        {"type": "loop_closure", "accepted": 2, "latest": [later[3], later[2]]},
+        {"type": "loop_retracted", "accepted": 2, "retracted": [later[0]]}]
+
+
+@pytest.mark.integration
+def test_events_over_zenoh_report_object_maps_and_every_accepted_loop_closure():
+    settings = load_settings(None, {"detector": {"enabled": False}, "robot": "etest"})
+    session = open_session(settings.zenoh, "server", embedded=True)
+    events: list[dict] = []
+    node = ServiceNode(settings, session)
+    try:
+        session.declare_subscriber(f"{node.prefix}/events", lambda s: events.append(json.loads(s.payload.to_bytes())))
+        node.start()
+        pub = frame_publisher(session, f"{node.prefix}/rgbd")
+        data = open_dataset("synthetic:room?seed=0&frames=160&fps=10&width=320&height=240")
+        for i in range(len(data)):
+            pub.put(encode_frame(data.frame(i)))
+            assert node.wait_done(i + 1, timeout=60.0)
+        loops = node.loops_reply()["loops"]
+        deadline = time.monotonic() + 10.0
+        accepted = sorted(r["factor"] for r in loops if r["accepted"])
+        while time.monotonic() < deadline and sum(len(e.get("latest", [])) for e in events) < len(accepted):
+            time.sleep(0.05)
+    finally:
+        node.stop()
+        session.close()
+    announced = [r["factor"] for e in events if e["type"] == "loop_closure" for r in e["latest"]]
+    assert len(accepted) > 1 and sorted(announced) == accepted  # each accepted loop exactly once
+    maps = [e for e in events if e["type"] == "objects"]
+
+    def clustered(objects: list[dict]) -> list[dict]:  # landmark estimates move with every graph update
+        return [{k: v for k, v in o.items() if k != "landmark"} for o in objects]
+
+    assert maps and len(maps[-1]["objects"]) > 3
+    assert clustered(maps[-1]["objects"]) == clustered(node.objects_reply()["objects"])  # the last re-clustering
