@@ -48,6 +48,21 @@ class IngestQueue:
             self._cond.notify_all()
             return item
 
+    def discard(self) -> int:
+        """Drop every queued item and count it in ``dropped`` (shutdown); returns how many."""
+        with self._cond:
+            n = len(self._items)
+            self._items.clear()
+            self.dropped += n
+            self._cond.notify_all()
+            return n
+
+    def count_dropped(self, n: int) -> int:
+        """Count ``n`` items taken from the queue but dropped later (shutdown); returns ``n``."""
+        with self._cond:
+            self.dropped += n
+            return n
+
     @property
     def depth(self) -> int:
         """Items waiting, read without the lock (a deque's length is read atomically): for status replies."""

@@ -69,6 +69,7 @@ class ServiceNode:
         self._stop = threading.Event()
         self._frame_done = threading.Condition()  # notified after each frame is processed, rejected or failed
         self._decoded: queue.Queue[tuple[Frame, float]] = queue.Queue(maxsize=2)  # decoder -> worker
+        self._saved_completed = 0  # frames completed (processed, rejected, failed, dropped) in the newest snapshot
         self._last_version = 0
         self._accepted_loops: set[int] = set()  # factor indices of the accepted loops last published
         self._loops_key: tuple[int, int] = (0, 0)
@@ -92,7 +93,7 @@ class ServiceNode:
         # 83-104 ms at 1 ms, 101 at 5 ms; 0.5 ms answered faster but processed fewer frames).
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         s, p = self.session, self.prefix
-        self._entities.append(s.declare_subscriber(f"{p}/rgbd", self._on_frame))
+        self._entities.append(s.declare_subscriber(f"{p}/rgbd", self._on_frame))  # first: ``stop`` relies on it
         for name, handler in (("status", self.status), ("trajectory", self.trajectory_reply),
                               ("objects", self.objects_reply), ("loops", self.loops_reply)):
             self._entities.append(s.declare_queryable(f"{p}/{name}", self._replier(name, handler)))
@@ -103,24 +104,44 @@ class ServiceNode:
         log.info("serving %s (protocol v%d)", p, VERSION)
 
     def stop(self) -> None:
-        """Stop the worker after the current frame, write a last snapshot, and undeclare zenoh entities."""
+        """Stop taking frames, stop the worker after the current frame, count the frames still queued as dropped,
+        write a last snapshot, and undeclare the other zenoh entities."""
+        if self._entities:  # the frame subscriber (declared first): nothing arrives after this
+            self._undeclare(self._entities.pop(0))
         self._stop.set()
         for thread in (self._decoder, self._worker):
             if thread.is_alive():
                 thread.join(timeout=10)
-        if len(self.queue) or self._decoded.qsize():
-            log.info("stopping with %d queued frames unprocessed", len(self.queue) + self._decoded.qsize())
         if self._worker.is_alive():
             log.error("the worker did not stop within 10 s: no final snapshot, the last periodic one stands")
         else:
+            self._discard_queued()
             self.snapshot(final=True)
             self.pipeline.close()
         for entity in reversed(self._entities):
-            try:
-                entity.undeclare()
-            except zenoh.ZError as exc:  # already closed session
-                log.debug("undeclare failed: %s", exc)
+            self._undeclare(entity)
         self._entities.clear()
+
+    @staticmethod
+    def _undeclare(entity: Any) -> None:
+        try:
+            entity.undeclare()
+        except zenoh.ZError as exc:  # already closed session
+            log.debug("undeclare failed: %s", exc)
+
+    def _discard_queued(self) -> None:
+        """Frames received and still queued when the decoder and worker stopped: counted as dropped, so that
+        after a restart every received frame is processed, rejected, failed or dropped."""
+        decoded = 0
+        while True:
+            try:
+                self._decoded.get_nowait()
+            except queue.Empty:
+                break
+            decoded += 1
+        left = self.queue.discard() + self.queue.count_dropped(decoded)
+        if left:
+            log.info("stopping with %d queued frames unprocessed: counted in frames_dropped", left)
 
     @property
     def completed(self) -> int:
@@ -162,12 +183,14 @@ class ServiceNode:
             if frame is None:
                 self._completed_one()
                 continue
-            while not self._stop.is_set():
+            while True:
                 try:
                     self._decoded.put((frame, item.received), timeout=0.1)
                     break
                 except queue.Full:
-                    continue
+                    if self._stop.is_set():  # stopping with the worker's queue full: counted as dropped
+                        self.queue.count_dropped(1)
+                        break
 
     def _decode(self, payload: bytes) -> Frame | None:
         """The decoded frame, or None when it was rejected (counted by reason) or decoding failed."""
@@ -240,8 +263,9 @@ class ServiceNode:
         p = self.persistence
         if p is None:
             return False
-        keyframes, frames = self.pipeline.graph.num_keyframes, self.stats.processed
-        if not (p.due(keyframes) or (final and p.changed(keyframes, frames))):
+        keyframes, frames, completed = self.pipeline.graph.num_keyframes, self.stats.processed, self.completed
+        changed = p.changed(keyframes, frames) or completed != self._saved_completed  # rejected, dropped frames too
+        if not (p.due(keyframes) or (final and changed)):
             return False
         t0 = time.perf_counter()
         with self._lock:
@@ -250,6 +274,7 @@ class ServiceNode:
         capture_s = time.perf_counter() - t0
         if p.save(payload, keyframes, frames, capture_s) is None:
             return False
+        self._saved_completed = completed
         self.stats.time("snapshot", time.perf_counter() - t0)
         return True
 
@@ -274,6 +299,7 @@ class ServiceNode:
         self.pipeline = pipeline
         self.stats.restore_counters(state["stats"])
         self.queue.dropped = state["frames_dropped"]
+        self._saved_completed = self.completed
         self._last_version = pipeline.object_map_version
         self._accepted_loops = {r["factor"] for r in pipeline.loop_records() if r["accepted"]}
 

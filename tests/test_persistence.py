@@ -279,6 +279,28 @@ def _stop(proc: subprocess.Popen, sig=signal.SIGTERM, timeout: float = 60.0) -> 
 
 
 @pytest.mark.integration
+def test_frames_still_queued_at_stop_are_counted_as_dropped_in_the_final_snapshot(tmp_path, payloads):
+    settings = load_settings(None, {"state_dir": tmp_path, "detector": {"enabled": False}})
+    session = open_session(settings.zenoh, "server", embedded=True)
+    try:
+        node = ServiceNode(settings, session)
+        node.start()
+        _feed(node, session, payloads[:5])
+        node._stop.set()  # decoder and worker stop; three more frames arrive before the entities are undeclared
+        node._decoder.join(timeout=10)
+        node._worker.join(timeout=10)
+        for payload in payloads[5:8]:
+            node.stats.count_received()
+            node.submit(payload)
+        node.stop()
+        assert node.status()["frames_dropped"] == 3 and node.completed == node.stats.received == 8
+
+        resumed = ServiceNode(settings, session).status()
+        assert (resumed["frames_received"], resumed["frames_processed"], resumed["frames_dropped"]) == (8, 5, 3)
+    finally:
+        session.close()
+
+
 def test_serve_resumes_after_sigterm_with_nothing_lost(router, tmp_path, reference):
     session, endpoint = router
     state, log = tmp_path / "state", tmp_path / "serve.log"
