@@ -128,6 +128,21 @@ def replay(dataset: Annotated[str, typer.Argument(help="directory or synthetic:N
 
 
 @app.command()
+def save(robot: RobotOpt = None, connect: ConnectOpt = None, mode: ModeOpt = None, config: ConfigOpt = None,
+         timeout: Annotated[float, typer.Option("--timeout", help="seconds to wait for the files")] = 120.0,
+         as_json: Annotated[bool, typer.Option("--json", help="print the JSON reply")] = False) -> None:
+    """Ask a running service to write its outputs (trajectory, objects, loops, report, map) into its state dir."""
+    from service.client import query
+
+    reply = query(_settings(config, robot, connect, None, mode), "save", timeout)
+    if as_json:
+        print(json.dumps(reply, indent=1))
+    else:
+        console.print(f"{reply['robot']}: {reply['keyframes']} keyframes of {reply['frames_processed']} frames "
+                      f"written to {reply['dir']} in {reply['seconds']:.1f} s: {', '.join(reply['files'])}")
+
+
+@app.command()
 def status(what: Annotated[QueryKind, typer.Argument()] = QueryKind.status,
            as_json: Annotated[bool, typer.Option("--json", help="print the JSON reply")] = False,
            robot: RobotOpt = None, connect: ConnectOpt = None, mode: ModeOpt = None, config: ConfigOpt = None) -> None:

@@ -177,8 +177,8 @@ class LoopCloser:
         record: dict[str, Any] = {
             "query_t": query.timestamp, "match_t": match.timestamp, "query_frame": query.frame,
             "match_frame": match.frame, "query_keyframe": query.index, "match_keyframe": match.index,
-            "source": source, "similarity": None if math.isnan(similarity) or source == "policy" else round(similarity, 4),
-            "accepted": False}
+            "source": source, "accepted": False,
+            "similarity": None if math.isnan(similarity) or source == "policy" else round(similarity, 4)}
         if source == "policy":
             record["policy_probability"] = round(similarity, 4)
         try:

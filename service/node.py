@@ -20,6 +20,7 @@ import threading
 import time
 from collections import Counter
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import zenoh
@@ -28,6 +29,7 @@ from graph.geometry import pose_to_tum
 from graph.pose_graph import SolverError
 from service.config import Settings
 from service.ingest import IngestQueue
+from service.outputs import run_summary, write_outputs
 from service.persistence import Persistence
 from service.pipeline import Pipeline
 from service.protocol import VERSION, FrameRejected, Limits, decode_frame
@@ -69,6 +71,7 @@ class ServiceNode:
         self._stop = threading.Event()
         self._frame_done = threading.Condition()  # notified after each frame is processed, rejected or failed
         self._decoded: queue.Queue[tuple[Frame, float]] = queue.Queue(maxsize=2)  # decoder -> worker
+        self._save_requests: queue.Queue[zenoh.Query] = queue.Queue(maxsize=4)  # ``save`` queries -> worker
         self._saved_completed = 0  # frames completed (processed, rejected, failed, dropped) in the newest snapshot
         self._last_version = 0
         self._accepted_loops: set[int] = set()  # factor indices of the accepted loops last published
@@ -97,6 +100,7 @@ class ServiceNode:
         for name, handler in (("status", self.status), ("trajectory", self.trajectory_reply),
                               ("objects", self.objects_reply), ("loops", self.loops_reply)):
             self._entities.append(s.declare_queryable(f"{p}/{name}", self._replier(name, handler)))
+        self._entities.append(s.declare_queryable(f"{p}/save", self._on_save))
         self.events = s.declare_publisher(f"{p}/events")
         self._entities.append(self.events)
         self._decoder.start()
@@ -209,8 +213,10 @@ class ServiceNode:
         return frame
 
     def _work(self) -> None:
-        """Worker thread: decoded frames through the pipeline, one at a time."""
+        """Worker thread: decoded frames through the pipeline, one at a time; ``save`` requests between them."""
         while not self._stop.is_set():
+            if not self._save_requests.empty():
+                self._answer_saves()
             try:
                 frame, received = self._decoded.get(timeout=0.1)
             except queue.Empty:
@@ -360,6 +366,46 @@ class ServiceNode:
         return events + ([{"type": "loop_retracted", "accepted": len(accepted), "retracted": gone}] if gone else [])
 
     # ------------------------------------------------------------ queries
+
+    def _on_save(self, query: zenoh.Query) -> None:
+        """``save``: the worker writes the outputs between frames and replies; here the query is only queued."""
+        try:
+            self._save_requests.put_nowait(query)
+        except queue.Full:
+            query.reply_err(json.dumps({"error": "busy: earlier save requests are still being written"}).encode())
+
+    def _answer_saves(self) -> None:
+        while True:
+            try:
+                query = self._save_requests.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                if self.settings.state_dir is None:
+                    raise ValueError("this service has no state directory (serve --state-dir DIR) to write to")
+                t0 = time.perf_counter()
+                out = Path(self.settings.state_dir)
+                summary = self.write_outputs(out)
+                body = {"robot": self.settings.robot, "dir": str(out), "files": sorted(p.name for p in out.iterdir()
+                                                                                      if p.is_file()),
+                        "keyframes": summary["keyframes"], "frames_processed": summary["frames_processed"],
+                        "seconds": round(time.perf_counter() - t0, 3)}
+                query.reply(f"{self.prefix}/save", json.dumps(body).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
+            except Exception as exc:  # a failed save must not take the service down
+                log.exception("save request failed")
+                query.reply_err(json.dumps({"error": str(exc)}).encode())
+            finally:
+                del query  # dropping it finalizes the query for the client
+
+    def write_outputs(self, out: Path) -> dict[str, Any]:
+        """The outputs of SPEC section 4 of the map as it stands, into ``out``; returns the summary."""
+        traj, odom = self.trajectories()
+        status = self.status()
+        summary = run_summary(f"serve {self.prefix}", status["frames_received"], status["uptime_s"], status)
+        with self._lock:  # iSAM2's estimate cache: not beside the worker (this may run on another thread)
+            cloud = self.pipeline.cloud()
+        return write_outputs(out, traj, odom, summary, None, self.objects_reply()["objects"],
+                             self.loops_reply()["loops"], cloud)
 
     def _replier(self, name: str, handler):
         def reply(query: zenoh.Query) -> None:

@@ -106,3 +106,27 @@ def report_markdown(summary: dict[str, Any]) -> str:
             if s.get("n"):
                 lines.append(f"| {stage} | {s['n']} | {s['p50_ms']} | {s['p95_ms']} | {s['p99_ms']} | {s['max_ms']} |")
     return "\n".join(lines) + "\n"
+
+
+def run_summary(name: str, frames: int, elapsed: float, status: dict[str, Any]) -> dict[str, Any]:
+    """The summary of a run or a serving service from its ``status`` (report.md, the printed table)."""
+    return {
+        "dataset": name,
+        "frames": frames,
+        "frames_processed": status["frames_processed"],
+        "frames_rejected": status["frames_rejected"],
+        "frames_dropped": status["frames_dropped"],
+        "keyframes": status["keyframes"],
+        "poses": status["poses"],
+        "objects_by_class": status.get("objects_by_class", {}),
+        "keyframe_detections_by_class": status.get("keyframe_detections_by_class", {}),
+        "loop_closures": status["loop_closures"]["accepted"],
+        "loop_candidates": status["loop_closures"]["accepted"] + status["loop_closures"]["rejected"],
+        "tracking_lost": status.get("tracking_lost", 0),
+        "landmarks": status.get("landmarks", 0),
+        "landmark_measurements": status.get("landmark_measurements", 0),
+        "object_reposes": status.get("object_reposes", 0),
+        "seconds": round(elapsed, 3),
+        "throughput_fps": round(status["frames_processed"] / elapsed, 2) if elapsed > 0 else 0.0,
+        "latency": status["latency"],
+    }

@@ -11,7 +11,7 @@ from typing import Any
 
 from service.config import Settings
 from service.node import ServiceNode
-from service.outputs import write_outputs
+from service.outputs import run_summary, write_outputs
 from service.replay import Replayer, frame_publisher
 from service.sources import Dataset, open_dataset
 from service.zenoh_session import open_session
@@ -54,7 +54,7 @@ def run_dataset(spec: str | Dataset, out: Path, settings: Settings, max_frames: 
         pub.undeclare()
         node.finish()
         status = node.status()
-        summary = _summary(dataset.name, result.frames, elapsed, status)
+        summary = run_summary(dataset.name, result.frames, elapsed, status)
         traj, odom = node.trajectories()
         objects = node.objects_reply()["objects"]
         return write_outputs(out, traj, odom, summary, dataset.ground_truth, objects, node.loops_reply()["loops"],
@@ -62,29 +62,6 @@ def run_dataset(spec: str | Dataset, out: Path, settings: Settings, max_frames: 
     finally:
         node.stop()
         session.close()
-
-
-def _summary(name: str, frames: int, elapsed: float, status: dict[str, Any]) -> dict[str, Any]:
-    return {
-        "dataset": name,
-        "frames": frames,
-        "frames_processed": status["frames_processed"],
-        "frames_rejected": status["frames_rejected"],
-        "frames_dropped": status["frames_dropped"],
-        "keyframes": status["keyframes"],
-        "poses": status["poses"],
-        "objects_by_class": status.get("objects_by_class", {}),
-        "keyframe_detections_by_class": status.get("keyframe_detections_by_class", {}),
-        "loop_closures": status["loop_closures"]["accepted"],
-        "loop_candidates": status["loop_closures"]["accepted"] + status["loop_closures"]["rejected"],
-        "tracking_lost": status.get("tracking_lost", 0),
-        "landmarks": status.get("landmarks", 0),
-        "landmark_measurements": status.get("landmark_measurements", 0),
-        "object_reposes": status.get("object_reposes", 0),
-        "seconds": round(elapsed, 3),
-        "throughput_fps": round(status["frames_processed"] / elapsed, 2) if elapsed > 0 else 0.0,
-        "latency": status["latency"],
-    }
 
 
 def serve(settings: Settings, stop: threading.Event | None = None) -> None:
@@ -110,14 +87,6 @@ def serve(settings: Settings, stop: threading.Event | None = None) -> None:
     finally:
         node.stop()
         if settings.state_dir is not None:
-            _write_state_outputs(node, Path(settings.state_dir))
+            node.write_outputs(Path(settings.state_dir))
         session.close()
         log.info("objslam serve: stopped")
-
-
-def _write_state_outputs(node: ServiceNode, out: Path) -> None:
-    traj, odom = node.trajectories()
-    status = node.status()
-    summary = _summary(f"serve {node.prefix}", status["frames_received"], status["uptime_s"], status)
-    write_outputs(out, traj, odom, summary, None, node.objects_reply()["objects"], node.loops_reply()["loops"],
-                  node.pipeline.cloud())

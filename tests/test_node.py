@@ -94,3 +94,34 @@ def test_events_over_zenoh_report_object_maps_and_every_accepted_loop_closure():
 
     assert maps and len(maps[-1]["objects"]) > 3
     assert clustered(maps[-1]["objects"]) == clustered(node.objects_reply()["objects"])  # the last re-clustering
+
+
+@pytest.mark.integration
+def test_save_writes_the_outputs_of_a_running_service_on_request(tmp_path):
+    data = open_dataset("synthetic:room?seed=0&frames=30&fps=10&width=320&height=240")
+    for state_dir in (tmp_path / "state", None):
+        settings = load_settings(None, {"detector": {"enabled": False}, "robot": "stest", "state_dir": state_dir})
+        session = open_session(settings.zenoh, "server", embedded=True)
+        node = ServiceNode(settings, session)
+        try:
+            node.start()
+            pub = frame_publisher(session, f"{node.prefix}/rgbd")
+            for i in range(len(data)):
+                pub.put(encode_frame(data.frame(i)))
+            assert node.wait_done(len(data), timeout=60.0)
+            replies = list(session.get(f"{node.prefix}/save", timeout=60.0))
+            assert len(replies) == 1
+            if state_dir is None:
+                assert replies[0].ok is None and "no state directory" in replies[0].err.payload.to_string()
+                continue
+            reply = json.loads(replies[0].ok.payload.to_bytes())
+            assert reply["frames_processed"] == len(data) and reply["keyframes"] == node.status()["keyframes"]
+            assert {"trajectory.tum", "odometry.tum", "objects.json", "loops.json", "report.md",
+                    "map.png"} <= set(reply["files"])
+            rows = [r for r in (state_dir / "trajectory.tum").read_text().splitlines() if r and r[0] != "#"]
+            assert len(rows) == len(data)
+            assert json.loads((state_dir / "objects.json").read_text()) == node.objects_reply()["objects"]
+            assert node.status()["frames_processed"] == len(data)  # the service carries on
+        finally:
+            node.stop()
+            session.close()

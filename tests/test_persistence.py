@@ -6,6 +6,7 @@ it exactly (the graph is rebuilt by replaying iSAM2's update log, not re-optimis
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import signal
@@ -313,6 +314,12 @@ def test_serve_resumes_after_sigterm_with_nothing_lost(router, tmp_path, referen
         rows = _trajectory(session)
         loops = _get(session, "objslam/ptest/loops")["loops"]
         assert before["frames_processed"] == 90 and before["persistence"]["snapshots_written"] >= 1
+        save = _objslam("save", "--mode", "client", "--connect", endpoint, "--robot", "ptest", "--json",
+                        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        out, err = save.communicate(timeout=120)
+        assert save.returncode == 0 and json.loads(out)["frames_processed"] == 90, err
+        assert len(np.loadtxt(state / "trajectory.tum", ndmin=2)) == 90 and (state / "map.png").is_file()
+        (state / "trajectory.tum").unlink()  # the shutdown writes it again
     finally:
         assert _stop(serve) == 0, log.read_text()
     assert (state / "trajectory.tum").is_file() and (state / "snapshots").is_dir()
