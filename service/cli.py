@@ -181,7 +181,8 @@ def run(dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME
 @app.command("eval")
 def evaluate_cmd(run_dir: Annotated[Path, typer.Argument(help="a run output directory")],
                  gt: Annotated[str, typer.Option("--gt", help="the dataset with ground truth")]) -> None:
-    """ATE / RPE of a run's trajectory.tum against a dataset's ground truth; writes report.md."""
+    """A run directory against a dataset's ground truth: ATE / RPE and, with ground-truth objects, object
+    metrics; writes its section of report.md, metrics.json and eval.png."""
     from service.evaluate import evaluate_run
 
     console.print(evaluate_run(run_dir, gt))
@@ -387,7 +388,9 @@ def single_threaded_blas() -> None:
 
 def main() -> None:
     """Console entry point: domain errors become one line on stderr and exit code 1."""
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    for ours in ("service", "perception", "graph", "rl"):  # progress messages of ours; other libraries' warnings
+        logging.getLogger(ours).setLevel(logging.INFO)
     single_threaded_blas()
     try:
         app(standalone_mode=False)

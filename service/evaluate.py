@@ -1,33 +1,95 @@
-"""``objslam eval``: trajectory error of a run directory against a dataset's ground truth."""
+"""``objslam eval``: a run directory against a dataset's ground truth.
+
+Trajectory error (ATE / RPE after SE(3) alignment) of ``trajectory.tum`` and ``odometry.tum``; where the
+dataset has ground-truth objects (``objects_gt.json``, the synthetic scenes), the mapped objects of
+``objects.json`` moved by the trajectory's alignment, matched one-to-one to them (mapped / matched / false,
+ground-plane IoU, centroid error). Association metrics need per-frame instance masks and the service's
+per-frame associations, which a run directory does not hold: ``bench association`` measures them.
+"""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
-from service.outputs import atomic_write, evaluate, report_markdown
-from service.sources import DatasetError, open_dataset
+import numpy as np
+
+from graph.metrics import match_timestamps
+from perception.clustering import ClusterConfig
+from service.object_metrics import aligned_objects, object_scores
+from service.outputs import atomic_write, error_dict, evaluate
+from service.sources import DatasetError, Trajectory, open_dataset
 from service.sources.tum import read_trajectory
+
+BEGIN, END = "<!-- objslam eval -->", "<!-- /objslam eval -->"
 
 
 def evaluate_run(run_dir: Path, gt_spec: str) -> str:
-    """Compute ATE / RPE of ``trajectory.tum`` and ``odometry.tum``; rewrite ``report.md``; return it."""
-    gt = open_dataset(gt_spec).ground_truth
+    """Evaluate ``run_dir`` against ``gt_spec``; writes ``metrics.json``, ``eval.png`` and the evaluation
+    section of ``report.md`` (the run's own summary stays); returns that section."""
+    data = open_dataset(gt_spec)
+    gt = data.ground_truth
     if gt is None:
         raise DatasetError(f"{gt_spec} has no ground truth")
-    summary: dict = {"dataset": gt_spec, "run": str(run_dir), "ate": {}}
-    for name in ("trajectory", "odometry"):
-        path = run_dir / f"{name}.tum"
-        if not path.is_file():
-            continue
-        err = evaluate(read_trajectory(path), gt)
-        if err is not None:
-            summary["ate"][name] = {k: getattr(err, k) for k in (
-                "pairs", "ate_rmse_m", "ate_mean_m", "ate_median_m", "ate_max_m", "rpe_trans_rmse_m",
-                "rpe_rot_rmse_deg")}
-    if not summary["ate"]:
+    runs = {name: read_trajectory(run_dir / f"{name}.tum") for name in ("trajectory", "odometry")
+            if (run_dir / f"{name}.tum").is_file()}
+    errors = {name: err for name, traj in runs.items() if (err := evaluate(traj, gt)) is not None}
+    if not errors:
         raise DatasetError(f"{run_dir}: no trajectory.tum poses match the ground-truth timestamps")
-    text = report_markdown(summary)
-    atomic_write(run_dir / "report.md", text)
-    atomic_write(run_dir / "metrics.json", json.dumps(summary["ate"], indent=1))
-    return text
+    result: dict[str, Any] = {"dataset": gt_spec, "run": str(run_dir),
+                              "ate": {name: error_dict(err) for name, err in errors.items()}}
+    truth, objects_file = data.objects, run_dir / "objects.json"
+    if truth and objects_file.is_file() and "trajectory" in errors:
+        mapped = aligned_objects(json.loads(objects_file.read_text()), errors["trajectory"].alignment)
+        result["objects"] = object_scores(mapped, truth, ClusterConfig().axis_scale)
+    section = evaluation_markdown(result)
+    report = run_dir / "report.md"
+    atomic_write(report, with_section(report.read_text() if report.is_file() else None, section))
+    atomic_write(run_dir / "metrics.json", json.dumps(result, indent=1))
+    from service.evalplot import plot_errors  # matplotlib is slow to import
+
+    plot_errors(run_dir / "eval.png", {name: position_errors(runs[name], gt, err.alignment)
+                                       for name, err in errors.items()}, gt_spec)
+    return section
+
+
+def position_errors(traj: Trajectory, gt: Trajectory, alignment: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(timestamps, position error in m) of the poses matched to the ground truth, after ``alignment``."""
+    i_est, i_ref = match_timestamps(traj.timestamps, gt.timestamps)
+    moved = traj.poses[i_est, :3, 3] @ alignment[:3, :3].T + alignment[:3, 3]
+    return traj.timestamps[i_est], np.linalg.norm(moved - gt.poses[i_ref, :3, 3], axis=1)
+
+
+def evaluation_markdown(result: dict[str, Any]) -> str:
+    """The evaluation section of ``report.md``."""
+    lines = [f"## Evaluation against {result['dataset']} (`objslam eval`)", "",
+             "| trajectory | pairs | ATE RMSE (m) | ATE median (m) | ATE max (m) | RPE trans RMSE (m/frame) "
+             "| RPE rot RMSE (deg/frame) |", "|---|---|---|---|---|---|---|"]
+    for name, e in result["ate"].items():
+        lines.append(f"| {name} | {e['pairs']} | {e['ate_rmse_m']:.4f} | {e['ate_median_m']:.4f} | "
+                     f"{e['ate_max_m']:.4f} | {e['rpe_trans_rmse_m']:.5f} | {e['rpe_rot_rmse_deg']:.4f} |")
+    objects = result.get("objects")
+    if objects is not None:
+        iou = "-" if objects["mean_iou"] is None else f"{objects['mean_iou']:.2f}"
+        err = "-" if objects["median_centroid_error_m"] is None else f"{objects['median_centroid_error_m']:.3f}"
+        lines += ["", "| ground-truth objects | mapped | matched | false | mean ground-plane IoU | "
+                      "median centroid error (m) |", "|---|---|---|---|---|---|",
+                  f"| {objects['ground_truth']} | {objects['mapped']} | {objects['matched']} | {objects['false']} | "
+                  f"{iou} | {err} |", "",
+                  f"Objects in the trajectory's ATE alignment; a mapped object matches a true one of its label when "
+                  f"its centre lies inside the true box grown by 0.25 m (one-to-one); IoU of the ellipse at "
+                  f"{objects['axis_scale']:g} std with the true box footprint."]
+    lines += ["", "Per-frame position error: `eval.png`; figures: `metrics.json`."]
+    return "\n".join(lines) + "\n"
+
+
+def with_section(report: str | None, section: str) -> str:
+    """``report`` with the evaluation section replaced (or appended; a report of its own without one)."""
+    block = f"{BEGIN}\n{section}{END}\n"
+    if report is None:
+        return "# objslam evaluation\n\n" + block
+    if BEGIN in report and END in report:
+        head, rest = report.split(BEGIN, 1)
+        return head + block + rest.split(END, 1)[1].lstrip("\n")
+    return report.rstrip("\n") + "\n\n" + block

@@ -67,7 +67,7 @@ def write_outputs(out: Path, trajectory: Trajectory, odometry: Trajectory, summa
     atomic_write(out / "objects.json", json.dumps(objects or [], indent=1))
     atomic_write(out / "loops.json", json.dumps(loops or [], indent=1))
     metrics = {name: evaluate(t, gt) for name, t in (("trajectory", trajectory), ("odometry", odometry))}
-    summary = {**summary, "ate": {k: _error_dict(v) for k, v in metrics.items() if v is not None}}
+    summary = {**summary, "ate": {k: error_dict(v) for k, v in metrics.items() if v is not None}}
     atomic_write(out / "report.md", report_markdown(summary))
     from service.mapplot import plot_map  # matplotlib is slow to import; only needed here
 
@@ -75,7 +75,7 @@ def write_outputs(out: Path, trajectory: Trajectory, odometry: Trajectory, summa
     return summary
 
 
-def _error_dict(err: TrajectoryError) -> dict[str, float]:
+def error_dict(err: TrajectoryError) -> dict[str, float]:
     return {"pairs": err.pairs, "ate_rmse_m": err.ate_rmse_m, "ate_mean_m": err.ate_mean_m,
             "ate_median_m": err.ate_median_m, "ate_max_m": err.ate_max_m,
             "rpe_trans_rmse_m": err.rpe_trans_rmse_m, "rpe_rot_rmse_deg": err.rpe_rot_rmse_deg,

@@ -17,21 +17,14 @@ from typing import Any
 import numpy as np
 from rich.console import Console
 
-from service.bench.objects import match_objects
 from service.bench.report import load_note, markdown_table, record, show_table
 from service.bench.slam import _short, default_datasets
 from service.config import load_settings
+from service.object_metrics import MappedObject, match_objects
 from service.run import run_dataset
 from service.sources import WithoutOdometry, open_dataset
 
 VARIANTS = [("off", False), ("off", True), ("appearance", False), ("appearance", True)]
-
-
-class _Centre:
-    """A mapped object seen through one of its positions (landmark or cluster mean) for ``match_objects``."""
-
-    def __init__(self, label: str, mean: np.ndarray):
-        self.label, self.mean = label, mean
 
 
 def run_variant(spec: str, loops: str, landmarks: bool) -> dict[str, Any]:
@@ -53,7 +46,7 @@ def run_variant(spec: str, loops: str, landmarks: bool) -> dict[str, Any]:
         aligned = _alignment(summary)
         placed = [o for o in objects if o["landmark"] is not None]
         for key, field in (("landmark_error_m", "landmark"), ("mean_error_m", "mean")):
-            centres = [_Centre(o["label"], aligned(np.asarray(o[field]))) for o in placed]
+            centres = [MappedObject(o["label"], aligned(np.asarray(o[field]))) for o in placed]
             errors = [np.linalg.norm(centres[a].mean - np.asarray(truth[b].center))
                       for a, b in match_objects(centres, truth)]
             row[key] = float(np.median(errors)) if errors else None

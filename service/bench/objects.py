@@ -15,7 +15,7 @@ from perception.object_map import ObjectMapper
 from perception.tracks import Tracker
 from service.bench.association import Scene, _pct, keyframe_step, load_scene
 from service.bench.report import markdown_table, record, show_table
-from service.sources import ObjectTruth
+from service.object_metrics import ellipse_box_iou, match_objects
 
 
 def map_objects(scene: Scene, k: int, npda: NPDAConfig, clustering: ClusterConfig, features: FeatureConfig,
@@ -26,42 +26,6 @@ def map_objects(scene: Scene, k: int, npda: NPDAConfig, clustering: ClusterConfi
         mapper.add_keyframe(j, scene.dets[j], scene.depth_m(j), scene.K, scene.poses[j])
     mapper.finish()
     return mapper.clusterer
-
-
-def ellipse_box_iou(mean: np.ndarray, cov: np.ndarray, scale: float, truth: ObjectTruth, res: float = 0.01) -> float:
-    """Ground-plane IoU of the ellipse (xy covariance, ``scale`` std) and the true yawed box footprint (raster)."""
-    vals, vecs = np.linalg.eigh(np.asarray(cov)[:2, :2])
-    ax = np.sqrt(np.clip(vals, 1e-12, None)) * scale
-    centre = np.asarray(truth.center[:2], float)
-    half = np.asarray(truth.size[:2], float) / 2.0
-    reach = max(ax.max(), np.hypot(*half)) + np.linalg.norm(mean[:2] - centre) + res
-    g = np.arange(-reach, reach, res)
-    X, Y = np.meshgrid((mean[0] + centre[0]) / 2 + g, (mean[1] + centre[1]) / 2 + g)
-    dx, dy = X - mean[0], Y - mean[1]
-    along, across = dx * vecs[0, 0] + dy * vecs[1, 0], dx * vecs[0, 1] + dy * vecs[1, 1]
-    inside_e = (along / ax[0]) ** 2 + (across / ax[1]) ** 2 <= 1
-    c, s = np.cos(truth.yaw), np.sin(truth.yaw)
-    bx, by = X - centre[0], Y - centre[1]
-    inside_b = (np.abs(c * bx + s * by) <= half[0]) & (np.abs(-s * bx + c * by) <= half[1])
-    return float((inside_e & inside_b).sum() / max((inside_e | inside_b).sum(), 1))
-
-
-def match_objects(objects: list, truth: list[ObjectTruth], margin: float = 0.25) -> list[tuple[int, int]]:
-    """One-to-one (mapped, true) matches: same label, centroid inside the true box grown by ``margin``."""
-    from scipy.optimize import linear_sum_assignment
-
-    cost = np.full((len(objects), len(truth)), 1e6)
-    for a, o in enumerate(objects):
-        for b, t in enumerate(truth):
-            d = o.mean - np.asarray(t.center)
-            c, s = np.cos(t.yaw), np.sin(t.yaw)
-            local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])
-            if o.label == t.label and np.all(np.abs(local) <= np.asarray(t.size) / 2 + margin):
-                cost[a, b] = float(np.linalg.norm(d))
-    if cost.size == 0:
-        return []
-    rows, cols = linear_sum_assignment(cost)
-    return [(int(a), int(b)) for a, b in zip(rows, cols) if cost[a, b] < 1e6]
 
 
 def run_objects_bench(console: Console, seeds: list[int], frames: int, write: Path | None,
