@@ -125,3 +125,32 @@ def test_save_writes_the_outputs_of_a_running_service_on_request(tmp_path):
         finally:
             node.stop()
             session.close()
+
+
+@pytest.mark.integration
+def test_overload_drops_the_oldest_frames_counts_them_and_status_keeps_answering():
+    settings = load_settings(None, {"detector": {"enabled": False}, "robot": "otest", "ingest": {"queue_size": 4}})
+    session = open_session(settings.zenoh, "server", embedded=True)
+    data = open_dataset("synthetic:room?seed=0&frames=120&fps=30&width=320&height=240")
+    payloads = [encode_frame(data.frame(i)) for i in range(len(data))]
+    node = ServiceNode(settings, session)
+    try:
+        node.start()
+        pub = frame_publisher(session, f"{node.prefix}/rgbd")
+        answered = 0
+        for i, payload in enumerate(payloads):  # far faster than the pipeline processes
+            pub.put(payload)
+            if i % 20 == 0:
+                answered += len([r for r in session.get(f"{node.prefix}/status", timeout=5.0) if r.ok is not None])
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and not (node.stats.received == len(data) and node.completed == len(data)):
+            time.sleep(0.05)
+        status = node.status()
+        trajectory = node.trajectory_reply()["poses"]
+    finally:
+        node.stop()
+        session.close()
+    assert answered == len(payloads) // 20  # every status query answered during the overload
+    assert status["frames_received"] == len(data) and status["frames_dropped"] > 0 and status["frames_processed"] > 1
+    assert status["frames_processed"] + status["frames_rejected_total"] + status["frames_dropped"] == len(data)
+    assert len(trajectory) == status["frames_processed"] and trajectory[-1][0] == data.frame(len(data) - 1).timestamp
