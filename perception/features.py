@@ -153,8 +153,18 @@ def room_behind(depth_m: np.ndarray, box: Box, rows: np.ndarray, cols: np.ndarra
     return float(np.percentile(behind, 90)) if behind.size else np.inf
 
 
+BORDER_PX = 4
+"""A box within this many pixels of the image border is cut by it."""
+
+
+def cut_by_border(box: Box, width: int, height: int) -> tuple[bool, bool]:
+    """Whether the image border cuts ``box`` on the left or right, and at the top or bottom."""
+    x1, y1, x2, y2 = box
+    return (x1 < BORDER_PX or x2 > width - BORDER_PX), (y1 < BORDER_PX or y2 > height - BORDER_PX)
+
+
 def complete_amodal(points: np.ndarray, label: str, track_id: int, shift: float,
-                    room: float = np.inf) -> FeatureVector | None:
+                    room: float = np.inf, cut_sideways: bool = False) -> FeatureVector | None:
     """A camera-frame view's feature vector completed behind its visible surface.
 
     A depth camera sees the near side of an object. Assuming it is about as deep as it is wide (horizontally,
@@ -164,6 +174,10 @@ def complete_amodal(points: np.ndarray, label: str, track_id: int, shift: float,
     ``shift`` standard deviations behind the near side (10th percentile), at most half the depth, and the spread
     is that of a uniform extent of that depth; across the ray the points' own statistics stay. Pixels of a
     supporting surface that join the object's depth segment then no longer stretch it.
+
+    ``cut_sideways``: the image border cuts the box on the left or right, so the points' horizontal spread
+    understates the object's width; the depth prior then takes the larger of the horizontal and vertical
+    spreads (still bounded by the surface's reach plus the free depth behind it).
     """
     f = feature_from_points(points, label, track_id)
     if f is None:
@@ -171,7 +185,7 @@ def complete_amodal(points: np.ndarray, label: str, track_id: int, shift: float,
     ray = f.mean / np.linalg.norm(f.mean)
     along = points @ ray
     near, far = np.percentile(along, [10, 90])
-    sx = float(np.sqrt(f.cov[0, 0]))
+    sx = float(np.sqrt(f.cov[0, 0] if not cut_sideways else max(f.cov[0, 0], f.cov[1, 1])))
     depth = min(np.sqrt(12.0) * sx, float(far - near) + room)
     centre = float(near) + min(shift * sx, depth / 2.0)
     P = np.eye(3) - np.outer(ray, ray)
@@ -287,7 +301,8 @@ def detection_feature(depth_m: np.ndarray, K: np.ndarray, box: Box, label: str, 
     points = backproject(depth_m, K, rows[idx], cols[idx])
     if config.amodal is None or len(points) < 3:
         return feature_from_points(points, label, track_id)
-    return complete_amodal(points, label, track_id, config.amodal, room_behind(depth_m, box, rows, cols))
+    return complete_amodal(points, label, track_id, config.amodal, room_behind(depth_m, box, rows, cols),
+                           cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0])
 
 
 def feature_from_points(points: np.ndarray, label: str, track_id: int = -1) -> FeatureVector | None:

@@ -9,19 +9,11 @@ import numpy as np
 
 from graph.geometry import inverse
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
-from perception.features import (FeatureConfig, FeatureVector, detection_feature, merge_features,
+from perception.features import (FeatureConfig, FeatureVector, cut_by_border, detection_feature, merge_features,
                                  transform_feature)
 from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
 from perception.tracks import Tracker
-
-
-BORDER_PX = 4
-"""A box within this many pixels of the image border is cut by it."""
-
-
-def _inside(box, width: int, height: int, margin: float) -> bool:
-    return box[0] >= margin and box[1] >= margin and box[2] <= width - margin and box[3] <= height - margin
 
 
 def _weighed(f: FeatureVector | None, whole: bool, cut_weight: float) -> FeatureVector | None:
@@ -71,7 +63,7 @@ class ObjectMapper:
         self.associations += len(pairs)
         ids = self.tracker.update(index, [d.label for d in detections], pairs)
         h, w = depth_m.shape[:2]
-        whole = [_inside(d.box, w, h, BORDER_PX) for d in detections]
+        whole = [not any(cut_by_border(d.box, w, h)) for d in detections]
         local = [_weighed(detection_feature(depth_m, K, d.box, d.label, t, self.features), inside,
                           self.features.cut_weight) for d, t, inside in zip(detections, ids, whole)]
         obs = [None if f is None else transform_feature(self._store(index, f), pose) for f in local]

@@ -108,6 +108,20 @@ def test_amodal_completion_puts_a_face_on_box_centre_behind_its_visible_face() -
     assert plain.mean[2] < 2.05  # without completion the centre sits on the visible face
 
 
+def test_a_tall_box_cut_by_the_image_side_is_completed_as_deep_as_tall_not_as_its_visible_width() -> None:
+    """A 1 m tall box at 2 m with a wall 2 m behind it, of which the right image border shows only 0.2 m of
+    width: its visible width understates it, so the depth prior takes its height; away from the border the same
+    sliver is a whole, thin object."""
+    depth = _plane_depth(4.0)
+    depth[5:55, 70:] = 2.0  # 50 rows = 1 m at fx 100 and 2 m; columns 70-79 = 0.2 m, cut by the right border
+    cut = detection_feature(depth, K, (70.0, 5.0, 80.0, 55.0), "refrigerator", 1, FeatureConfig())
+    assert cut is not None and cut.mean[2] > 2.4 and cut.var[2] > 0.6**2 / 12
+    inner = _plane_depth(4.0)
+    inner[5:55, 60:70] = 2.0
+    whole = detection_feature(inner, K, (60.0, 5.0, 70.0, 55.0), "refrigerator", 1, FeatureConfig())
+    assert whole is not None and whole.mean[2] < 2.15
+
+
 def test_amodal_depth_is_bounded_by_the_wall_behind_a_flat_object() -> None:
     """A 0.4 m wide screen 5 cm in front of a wall cannot be 0.4 m deep: the wall around it bounds it."""
     depth = _plane_depth(2.05)

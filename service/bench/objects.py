@@ -85,7 +85,8 @@ def run_objects_bench(console: Console, seeds: list[int], frames: int, write: Pa
              f"centroid lies inside the true box grown by 0.25 m (one-to-one); unmatched mapped objects are false. "
              f"Mean ground-plane IoU by ellipse scale: {iou_note}. Centroid error is 3D, the mapped "
              f"object centre vs the box centre. Each view is completed amodally (`FeatureConfig.amodal`: the "
-             f"centre sqrt(3) horizontal std behind the near side, as deep as wide, at most as deep as the visible "
+             f"centre sqrt(3) horizontal std behind the near side, as deep as wide (a view cut by the left or right "
+             f"image border: as the larger of its horizontal and vertical spreads), at most as deep as the visible "
              f"surface reaches plus the free depth between it and the background around the box), after the pixels "
              f"of the floor or table it stands on are dropped (`FeatureConfig.support_tilt_deg`); with the visible "
              f"points only: mean IoU {np.mean(visible_only['iou']):.2f}, median centroid "
@@ -100,5 +101,5 @@ def run_objects_bench(console: Console, seeds: list[int], frames: int, write: Pa
 
 def _objects_row(name: str, r: dict) -> list[object]:
     return [name, f"{r['found']} / {r['present']}", _pct(r["found"] / max(r["present"], 1)), r["mapped"],
-            _pct(r["false"] / max(r["mapped"], 1)), f"{r['iou']:.2f}", f"{r['median_error_m']:.3f}",
+            _pct(r["false"] / max(r["mapped"], 1)), f"{r['iou']:.3f}", f"{r['median_error_m']:.3f}",
             r["reclusterings"], r["features"], f"{r['seconds']:.1f}"]
