@@ -146,6 +146,9 @@ class ServiceNode:
         left = self.queue.discard() + self.queue.count_dropped(decoded)
         if left:
             log.info("stopping with %d queued frames unprocessed: counted in frames_dropped", left)
+        stopping = json.dumps({"error": "the service is stopping (with a state directory it writes its outputs)"})
+        while not self._save_requests.empty():  # the worker will not write them now
+            self._save_requests.get_nowait().reply_err(stopping.encode())
 
     @property
     def completed(self) -> int:
@@ -358,6 +361,7 @@ class ServiceNode:
                 log.warning("could not publish event: %s", exc)
 
     def _loop_events(self, records: list[dict]) -> list[dict]:
+        """Events for the loops accepted and retracted since the last call (by factor index)."""
         accepted = {r["factor"]: r for r in records if r["accepted"]}
         new = [accepted[f] for f in sorted(accepted.keys() - self._accepted_loops)]
         gone = [r for r in records if not r["accepted"] and r.get("factor") in self._accepted_loops]
@@ -386,8 +390,8 @@ class ServiceNode:
                 t0 = time.perf_counter()
                 out = Path(self.settings.state_dir)
                 summary = self.write_outputs(out)
-                body = {"robot": self.settings.robot, "dir": str(out), "files": sorted(p.name for p in out.iterdir()
-                                                                                      if p.is_file()),
+                files = sorted(path.name for path in out.iterdir() if path.is_file())
+                body = {"robot": self.settings.robot, "dir": str(out), "files": files,
                         "keyframes": summary["keyframes"], "frames_processed": summary["frames_processed"],
                         "seconds": round(time.perf_counter() - t0, 3)}
                 query.reply(f"{self.prefix}/save", json.dumps(body).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
