@@ -18,7 +18,7 @@ import numpy as np
 from graph.metrics import match_timestamps
 from perception.clustering import ClusterConfig
 from service.object_metrics import aligned_objects, object_scores
-from service.outputs import atomic_write, error_dict, evaluate
+from service.outputs import ate_table, atomic_write, error_dict, evaluate
 from service.sources import DatasetError, Trajectory, open_dataset
 from service.sources.tum import read_trajectory
 
@@ -63,12 +63,7 @@ def position_errors(traj: Trajectory, gt: Trajectory, alignment: np.ndarray) -> 
 
 def evaluation_markdown(result: dict[str, Any]) -> str:
     """The evaluation section of ``report.md``."""
-    lines = [f"## Evaluation against {result['dataset']} (`objslam eval`)", "",
-             "| trajectory | pairs | ATE RMSE (m) | ATE median (m) | ATE max (m) | RPE trans RMSE (m/frame) "
-             "| RPE rot RMSE (deg/frame) |", "|---|---|---|---|---|---|---|"]
-    for name, e in result["ate"].items():
-        lines.append(f"| {name} | {e['pairs']} | {e['ate_rmse_m']:.4f} | {e['ate_median_m']:.4f} | "
-                     f"{e['ate_max_m']:.4f} | {e['rpe_trans_rmse_m']:.5f} | {e['rpe_rot_rmse_deg']:.4f} |")
+    lines = [f"## Evaluation against {result['dataset']} (`objslam eval`)", "", *ate_table(result["ate"])]
     objects = result.get("objects")
     if objects is not None:
         iou = "-" if objects["mean_iou"] is None else f"{objects['mean_iou']:.2f}"

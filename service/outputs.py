@@ -91,12 +91,7 @@ def report_markdown(summary: dict[str, Any]) -> str:
         lines.append(f"| {key} | {json.dumps(value) if isinstance(value, (dict, list)) else value} |")
     ate = summary.get("ate", {})
     if ate:
-        lines += ["", "## Trajectory error (SE(3) Umeyama alignment, matched by timestamp)", "",
-                  "| trajectory | pairs | ATE RMSE (m) | ATE median (m) | ATE max (m) | RPE trans RMSE (m/frame) "
-                  "| RPE rot RMSE (deg/frame) |", "|---|---|---|---|---|---|---|"]
-        for name, e in ate.items():
-            lines.append(f"| {name} | {e['pairs']} | {e['ate_rmse_m']:.4f} | {e['ate_median_m']:.4f} | "
-                         f"{e['ate_max_m']:.4f} | {e['rpe_trans_rmse_m']:.5f} | {e['rpe_rot_rmse_deg']:.4f} |")
+        lines += ["", "## Trajectory error (SE(3) Umeyama alignment, matched by timestamp)", "", *ate_table(ate)]
     else:
         lines += ["", "No ground truth: no trajectory error."]
     latency = summary.get("latency")
@@ -106,6 +101,16 @@ def report_markdown(summary: dict[str, Any]) -> str:
             if s.get("n"):
                 lines.append(f"| {stage} | {s['n']} | {s['p50_ms']} | {s['p95_ms']} | {s['p99_ms']} | {s['max_ms']} |")
     return "\n".join(lines) + "\n"
+
+
+def ate_table(ate: dict[str, dict[str, Any]]) -> list[str]:
+    """Markdown rows of ATE / RPE per trajectory (``error_dict`` entries): report.md and ``objslam eval``."""
+    lines = ["| trajectory | pairs | ATE RMSE (m) | ATE median (m) | ATE max (m) | RPE trans RMSE (m/frame) "
+             "| RPE rot RMSE (deg/frame) |", "|---|---|---|---|---|---|---|"]
+    for name, e in ate.items():
+        lines.append(f"| {name} | {e['pairs']} | {e['ate_rmse_m']:.4f} | {e['ate_median_m']:.4f} | "
+                     f"{e['ate_max_m']:.4f} | {e['rpe_trans_rmse_m']:.5f} | {e['rpe_rot_rmse_deg']:.4f} |")
+    return lines
 
 
 def run_summary(name: str, frames: int, elapsed: float, status: dict[str, Any]) -> dict[str, Any]:

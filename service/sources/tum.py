@@ -12,12 +12,13 @@ import numpy as np
 from graph.geometry import pose_from_tum
 from graph.metrics import nearest_timestamps
 from perception.frame import CameraModel, Detection, Frame, Intrinsics
+from service.config import CameraDefaults
 from service.sources.base import Dataset, DatasetError, ObjectTruth, Trajectory
 
 log = logging.getLogger(__name__)
 
 MAX_TIME_DIFF_S = 0.02
-TUM_DEFAULT = {"fx": 525.0, "fy": 525.0, "cx": 319.5, "cy": 239.5, "depth_scale": 5000.0}
+TUM_DEFAULT = CameraDefaults().model_dump()  # the `camera` settings' defaults: TUM's
 
 
 def read_index(path: Path) -> list[tuple[float, str]]:
