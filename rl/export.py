@@ -28,11 +28,13 @@ def export_actor(actor: RecurrentNet, path: str | Path, meta: dict) -> Path:
     return path
 
 
-def export_trainer(trainer: Trainer, path: str | Path, wall_s: float) -> Path:
-    """The trainer's actor, with the map it learned, its configuration and its reward curve."""
+def export_trainer(trainer: Trainer, path: str | Path, wall_s: float, pretraining: dict | None = None) -> Path:
+    """The trainer's actor, with the map it learned, its configuration and its reward curve (and the memory
+    pretraining's settings and history, when there was one)."""
     return export_actor(trainer.actor, path, {
         "map": trainer.grid.to_json(), "exclude_last": trainer.cfg.exclude_last, "steps": trainer.global_step,
         "wall_s": round(wall_s, 1), "train": asdict(trainer.cfg),
+        **({"pretrain": pretraining} if pretraining else {}),
         "curve": [{k: v for k, v in row.items() if k in ("step", "mean_return", "batch_length")}
                   for row in trainer.curve]})
 

@@ -309,12 +309,14 @@ class Trainer:
 
     def aux_target_bits(self, T: int) -> np.ndarray:
         """(T, n_envs, aux outputs) targets of the auxiliary head for the first T buffered steps."""
-        b, L = self.buffer, self.grid.n_loops
-        visited = b.visited[:T]
+        return self.aux_targets_of(self.buffer.visited[:T], self.buffer.loop[:T])
+
+    def aux_targets_of(self, visited: np.ndarray, loop: np.ndarray) -> np.ndarray:
+        """Binary targets of the auxiliary head from per-step visit bits (..., L) and location stood on (...)."""
         if self.cfg.aux_targets != "visited+here+due":
-            return visited
-        here = b.loop[:T, :, None] == np.arange(L)
-        return np.concatenate([visited, here, here & visited], axis=-1)
+            return visited.astype(np.float32)
+        here = loop[..., None] == np.arange(self.grid.n_loops)
+        return np.concatenate([visited, here, here & visited], axis=-1).astype(np.float32)
 
     # ------------------------------------------------------------ update
 
@@ -371,7 +373,7 @@ class Trainer:
         actions_target = torch.from_numpy(b.targets[:T])
         old_logp = torch.from_numpy(b.logprobs[:T])
         adv_t, ret_t = torch.from_numpy(advantages), torch.from_numpy(returns)
-        visited = torch.from_numpy(self.aux_target_bits(T)).float()
+        visited = torch.from_numpy(self.aux_target_bits(T))
         place = torch.from_numpy(b.loop[:T] + 1)  # 0 = on no location, l + 1 = on location l
         place_w = torch.from_numpy(balance_weights(b.loop[:T] + 1))
         action_w = torch.from_numpy(balance_weights(b.targets[:T]))

@@ -50,6 +50,11 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
                                   "visited+place+action (docs/rl.md)")] = "visited",
         init_from: Annotated[Path | None, typer.Option(
             "--init-from", help="checkpoint (.pt) whose parameters of matching shape start the networks")] = None,
+        pretrain_epochs: Annotated[int, typer.Option(
+            "--pretrain-epochs", help="first train the actor's visit memory on random walks, supervised, for this "
+                                      "many epochs (0 = off; docs/rl.md)")] = 0,
+        pretrain_walks: Annotated[int, typer.Option("--pretrain-walks", help="random walks for pretraining")] = 512,
+        pretrain_length: Annotated[int, typer.Option("--pretrain-length", help="steps per pretraining walk")] = 128,
     ) -> None:
         """Train a PPO loop-closure policy for a grid map and export it to ONNX."""
         try:
@@ -66,6 +71,10 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
             raise user_error("--out must name a .onnx file")
         if steps <= 0 or envs <= 0 or not (0 < b1 <= b2) or n_steps <= 0:
             raise user_error("--steps, --envs, --n-steps must be positive and 0 < --b1 <= --b2")
+        if pretrain_epochs < 0 or (pretrain_epochs and (pretrain_walks <= 0 or pretrain_length <= 0)):
+            raise user_error("--pretrain-epochs must be >= 0, --pretrain-walks and --pretrain-length positive")
+        if pretrain_epochs and resume:
+            raise user_error("--pretrain-epochs starts a run; it cannot be combined with --resume")
         out.parent.mkdir(parents=True, exist_ok=True)
         checkpoint = out.with_suffix(".pt")
         try:
@@ -82,6 +91,7 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
                 trainer = Trainer(cfg, grid_map)
         except (MapError, ValueError) as exc:
             raise user_error(str(exc)) from exc
+        pretraining = _pretrain(trainer, pretrain_epochs, pretrain_walks, pretrain_length, seed, console, user_error)
         bar = tqdm(total=steps, initial=trainer.global_step, unit="step", desc=f"train-lc {trainer.grid.name}")
 
         def progress(step: int, stats: dict) -> None:
@@ -93,7 +103,7 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
 
         result = trainer.train(checkpoint, progress)
         bar.close()
-        export_trainer(trainer, out, result.wall_s)
+        export_trainer(trainer, out, result.wall_s, pretraining)
         plot_reward_curves({f"{trainer.grid.name} ({trainer.cfg.batch})": trainer.curve}, out.with_suffix(".png"),
                            f"loop-closure PPO on {trainer.grid.name}")
         console.print(f"{trainer.global_step} steps in {result.wall_s:.0f} s -> {out} "
@@ -152,6 +162,36 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
                    markdown_table(header, rows),
                    f"Mean over configurations: precision {100 * mean_p:.1f} %, recall {100 * mean_r:.1f} % "
                    f"(target >= 95 % / >= 80 %; dissertation 80 % / 67 %).", path=write)
+
+
+def _pretrain(trainer, epochs: int, walks: int, length: int, seed: int, console, user_error) -> dict | None:
+    """Supervised pretraining of the visit memory (rl/pretrain.py) before PPO; its settings and history."""
+    if not epochs:
+        return None
+    from dataclasses import asdict
+
+    from tqdm import tqdm
+
+    from rl.pretrain import MemoryPretrainer, PretrainConfig
+
+    cfg = PretrainConfig(epochs=epochs, walks=walks, length=length, seed=seed)
+    try:
+        pretrainer = MemoryPretrainer(trainer, cfg)
+    except ValueError as exc:
+        raise user_error(str(exc)) from exc
+    bar = tqdm(total=epochs, unit="epoch", desc=f"pretrain memory {trainer.grid.name}")
+
+    def progress(epoch: int, row: dict) -> None:
+        bar.update(epoch - bar.n)
+        bar.set_postfix(loss=f"{row['loss']:.3f}", due=f"{row['due_recalled']:.2f}",
+                        first=f"{row['first_visits_recognised']:.2f}")
+
+    history = pretrainer.run(progress)
+    bar.close()
+    last = history[-1]
+    console.print(f"visit memory after {epochs} epochs ({last['wall_s']:.0f} s), held-out walks: due visits "
+                  f"recalled {last['due_recalled']:.1%}, first visits recognised {last['first_visits_recognised']:.1%}")
+    return {"config": asdict(cfg), "history": history}
 
 
 def _map_of_dir(path: Path, cell_m: float | None):
