@@ -297,7 +297,9 @@ class Trainer:
                  place_w: torch.Tensor, action_w: torch.Tensor) -> torch.Tensor:
         """The auxiliary loss over (T, B) steps. "visited+place+action": BCE of the visit memory plus two
         classifiers (location stood on or none; the correct action), each step weighted so that the rare
-        classes (on a location; a loop closure due) carry the same total weight as the rest."""
+        classes carry the same total weight as the rest: on a location, for the location classifier; a loop
+        closure due and, apart, standing on a location where none is due (a first visit, which only memory
+        tells from a due one), for the action classifier."""
         L = self.grid.n_loops
         if self.cfg.aux_targets != "visited+place+action":
             return nn.functional.binary_cross_entropy_with_logits(aux_logits, bits)
@@ -376,7 +378,7 @@ class Trainer:
         visited = torch.from_numpy(self.aux_target_bits(T))
         place = torch.from_numpy(b.loop[:T] + 1)  # 0 = on no location, l + 1 = on location l
         place_w = torch.from_numpy(balance_weights(b.loop[:T] + 1))
-        action_w = torch.from_numpy(balance_weights(b.targets[:T]))
+        action_w = torch.from_numpy(balance_weights(b.targets[:T], b.at_loop[:T]))
         kinds = b.at_loop[:T] if cfg.balance_first_visits else None
         weight = torch.from_numpy(balance_weights(b.targets[:T], kinds) ** self.balance_power())
         groups = np.array_split(np.arange(cfg.n_envs), cfg.minibatches)

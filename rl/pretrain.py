@@ -117,7 +117,7 @@ class MemoryPretrainer:
         loss = self.trainer.aux_loss(aux, torch.from_numpy(self.trainer.aux_targets_of(walks.visited, walks.loop)),
                                      torch.from_numpy(place), torch.from_numpy(walks.action),
                                      torch.from_numpy(balance_weights(place)),
-                                     torch.from_numpy(balance_weights(walks.action)))
+                                     torch.from_numpy(balance_weights(walks.action, walks.loop >= 0)))
         on = torch.from_numpy(walks.loop >= 0)
         if on.any() and self.cfg.location_weight > 0:
             bits = location_bits(aux, walks.loop, self.n_loops)

@@ -103,10 +103,11 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
 
         result = trainer.train(checkpoint, progress)
         bar.close()
-        export_trainer(trainer, out, result.wall_s, pretraining)
+        pretrain_s = pretraining["history"][-1]["wall_s"] if pretraining else 0.0
+        export_trainer(trainer, out, result.wall_s + pretrain_s, pretraining)  # wall time: pretraining + PPO
         plot_reward_curves({f"{trainer.grid.name} ({trainer.cfg.batch})": trainer.curve}, out.with_suffix(".png"),
                            f"loop-closure PPO on {trainer.grid.name}")
-        console.print(f"{trainer.global_step} steps in {result.wall_s:.0f} s -> {out} "
+        console.print(f"{trainer.global_step} steps in {result.wall_s + pretrain_s:.0f} s -> {out} "
                       f"(+ {out.with_suffix('.json').name}, {checkpoint.name}, {out.with_suffix('.png').name})")
 
     @app.command("eval-lc")
