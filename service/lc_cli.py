@@ -50,6 +50,9 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
                                   "visited+place+action (docs/rl.md)")] = "visited",
         init_from: Annotated[Path | None, typer.Option(
             "--init-from", help="checkpoint (.pt) whose parameters of matching shape start the networks")] = None,
+        balance_first_visits: Annotated[bool, typer.Option(
+            "--balance-first-visits/--no-balance-first-visits",
+            help="balanced policy loss over three kinds of step: due, first visit, other (docs/rl.md)")] = False,
         pretrain_epochs: Annotated[int, typer.Option(
             "--pretrain-epochs", help="first train the actor's visit memory on random walks, supervised, for this "
                                       "many epochs (0 = off; docs/rl.md)")] = 0,
@@ -87,7 +90,8 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
                 cfg = TrainConfig(map=grid_map.name, total_steps=steps, n_envs=envs, batch=batch.value, n_steps=n_steps,
                                   b1=b1, b2=b2, seed=seed, threads=threads, max_episode_steps=episode_steps,
                                   minibatches=min(4, envs) if envs % min(4, envs) == 0 else 1,
-                                  aux_targets=aux_targets, init_from=str(init_from) if init_from else "")
+                                  aux_targets=aux_targets, init_from=str(init_from) if init_from else "",
+                                  balance_first_visits=balance_first_visits)
                 trainer = Trainer(cfg, grid_map)
         except (MapError, ValueError) as exc:
             raise user_error(str(exc)) from exc
