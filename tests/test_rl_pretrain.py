@@ -70,17 +70,17 @@ def test_pretraining_needs_the_auxiliary_head():
         MemoryPretrainer(trainer, PretrainConfig(epochs=1))
 
 
-def test_train_lc_pretrains_then_runs_ppo_and_records_the_pretraining(tmp_path):
+def test_train_lc_pretrains_then_runs_ppo_and_records_the_pretraining_and_the_loss_balance(tmp_path):
     out = tmp_path / "p.onnx"
     args = [sys.executable, "-m", "service", "train-lc", "--map", "config1", "--steps", "200", "--envs", "2",
             "--b1", "16", "--b2", "48", "--aux-targets", "visited+place+action", "--pretrain-epochs", "2",
-            "--pretrain-walks", "16", "--pretrain-length", "48", "--out", str(out)]
+            "--pretrain-walks", "16", "--pretrain-length", "48", "--balance-first-visits", "--out", str(out)]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     res = subprocess.run(args, env=env, capture_output=True, text=True, timeout=240)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "visit memory after 2 epochs" in res.stdout
     meta = json.loads(out.with_suffix(".json").read_text())
     assert meta["pretrain"]["config"]["walks"] == 16 and len(meta["pretrain"]["history"]) == 2
-    assert meta["steps"] >= 200
+    assert meta["steps"] >= 200 and meta["train"]["balance_first_visits"] is True
     bad = subprocess.run([*args, "--resume"], env=env, capture_output=True, text=True, timeout=120)
     assert bad.returncode == 1 and "--resume" in bad.stderr
