@@ -279,8 +279,9 @@ def bench_landmarks(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None
 def bench_policy_loops(dataset: DatasetsOpt = None,
                        steps: Annotated[int, typer.Option("--steps", help="policy training steps per map")] = 100_000,
                        init_from: Annotated[str, typer.Option(
-                           "--init-from", help="checkpoint (.pt) that starts each policy; default: the shipped "
-                           "config1 policy, models/lc/config1.init.pt ('' = from scratch)")] = "config1",
+                           "--init-from", help="checkpoint (.pt) that starts each policy; default: the config1 policy "
+                           "before memory pretraining, models/lc/config1.init.pt ('' = from scratch)")]
+                       = "config1",
                        write: WriteOpt = None) -> None:
     """Two passes per dataset: map + grid world, train a policy, re-run with policy loop closures."""
     from service.bench.policy_loops import run_policy_loops_bench

@@ -10,7 +10,7 @@ from typing import Annotated
 import typer
 
 POLICY_DIR = Path(__file__).resolve().parents[1] / "models" / "lc"
-INIT_CHECKPOINT = "config1.init.pt"  # the shipped config1 policy's networks, no optimizer: default --init-from
+INIT_CHECKPOINT = "config1.init.pt"  # networks of the config1 policy before memory pretraining: default --init-from
 TABLE_3_1 = {"config1": (77.8, 63.5), "config2": (78.2, 71.2), "config3": (82.5, 63.1),
              "config4": (85.6, 68.7), "config5": (76.4, 64.4), "config6": (83.1, 70.6)}
 
