@@ -175,6 +175,16 @@ def balance_weights(targets: np.ndarray, at_loop: np.ndarray | None = None) -> n
     return per_kind[kind].astype(np.float32)
 
 
+def aux_classifier_targets(loop: np.ndarray, action: np.ndarray) -> tuple[torch.Tensor, ...]:
+    """Targets and per-step weights of the aux head's two classifiers ("visited+place+action"), from the
+    location stood on (-1 for none) and the correct action: place (0 = none, l + 1 = location l) weighted
+    so being on a location carries the weight of the rest; the action weighted in three kinds (due; on a
+    location where none is due, i.e. a first visit, which only memory tells apart; elsewhere)."""
+    place = loop + 1
+    return (torch.from_numpy(place), torch.from_numpy(balance_weights(place)),
+            torch.from_numpy(balance_weights(action, loop >= 0)))
+
+
 def distinct_frames(obs: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     """(T, B, 84, 84, 3) images -> the distinct images and, per step, the index of its image.
 
@@ -376,9 +386,7 @@ class Trainer:
         old_logp = torch.from_numpy(b.logprobs[:T])
         adv_t, ret_t = torch.from_numpy(advantages), torch.from_numpy(returns)
         visited = torch.from_numpy(self.aux_target_bits(T))
-        place = torch.from_numpy(b.loop[:T] + 1)  # 0 = on no location, l + 1 = on location l
-        place_w = torch.from_numpy(balance_weights(b.loop[:T] + 1))
-        action_w = torch.from_numpy(balance_weights(b.targets[:T], b.at_loop[:T]))
+        place, place_w, action_w = aux_classifier_targets(b.loop[:T], b.targets[:T])
         kinds = b.at_loop[:T] if cfg.balance_first_visits else None
         weight = torch.from_numpy(balance_weights(b.targets[:T], kinds) ** self.balance_power())
         groups = np.array_split(np.arange(cfg.n_envs), cfg.minibatches)

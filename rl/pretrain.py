@@ -28,7 +28,7 @@ from torch import nn
 
 from rl.env import GridRules, LoopClosureGrid
 from rl.gridmap import GridMap
-from rl.ppo import Trainer, balance_weights, distinct_frames
+from rl.ppo import Trainer, aux_classifier_targets, distinct_frames
 
 
 @dataclass
@@ -113,11 +113,9 @@ class MemoryPretrainer:
         starts[0] = True
         h, c = actor.initial_state(N)
         _, aux = actor.sequence(frames, index, starts, h, c, with_aux=True)
-        place = walks.loop + 1
+        place, place_w, action_w = aux_classifier_targets(walks.loop, walks.action)
         loss = self.trainer.aux_loss(aux, torch.from_numpy(self.trainer.aux_targets_of(walks.visited, walks.loop)),
-                                     torch.from_numpy(place), torch.from_numpy(walks.action),
-                                     torch.from_numpy(balance_weights(place)),
-                                     torch.from_numpy(balance_weights(walks.action, walks.loop >= 0)))
+                                     place, torch.from_numpy(walks.action), place_w, action_w)
         on = torch.from_numpy(walks.loop >= 0)
         if on.any() and self.cfg.location_weight > 0:
             bits = location_bits(aux, walks.loop, self.n_loops)
