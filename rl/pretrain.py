@@ -9,11 +9,14 @@ the auxiliary targets (``Trainer.aux_loss``: visit bits, location, correct actio
 on such walks, with backpropagation through each whole walk, plus an extra loss on the one bit that
 decides a loop closure (the visit bit of the location stood on). The LSTM's forget gates start open
 (``forget_bias``), so memory persists from the start. The critic's encoder and LSTM start as copies.
-PPO then trains the policy head on top (and keeps the auxiliary loss).
+PPO then trains the policy head on top (and keeps the auxiliary loss). With ``policy_from_aux`` the policy
+head starts as a copy of the auxiliary head's correct-action classifier (an imitation start: the
+classifier is trained on the environment's correct actions), and PPO fine-tunes it on the reward.
 
 The measure of the memory (``memory_scores``), on held-out walks, on the steps where the agent stands on
 a loop-closure location: the fraction of due visits whose visit bit is set, and of first visits (or
-revisits within ``c`` steps) whose bit is clear.
+revisits within ``c`` steps) whose bit is clear; and the precision and recall of the correct-action
+classifier's greedy choice, counted as ``eval-lc`` counts a policy's.
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ class PretrainConfig:
     forget_bias: float = 3.0  # initial forget-gate bias of the actor's LSTM (sigmoid(3) = 0.95 kept per step)
     location_weight: float = 3.0  # weight of the extra loss on the visit bit of the location stood on
     seed: int = 0
+    policy_from_aux: bool = False  # start the policy head as a copy of the aux correct-action classifier
 
 
 @dataclass
@@ -79,14 +83,24 @@ def location_bits(aux_logits: torch.Tensor, loop: np.ndarray, n_loops: int) -> t
     return aux_logits[..., :n_loops].gather(-1, index)[..., 0]
 
 
+def action_logits(aux_logits: torch.Tensor, n_loops: int) -> torch.Tensor:
+    """The correct-action classifier's logits: the last ``n_loops + 1`` aux outputs ("visited+place+action")."""
+    return aux_logits[..., 2 * n_loops + 1:]
+
+
 def memory_scores(aux_logits: torch.Tensor, walks: Walks, n_loops: int) -> dict:
-    """On the steps at a loop-closure location: share of due visits with the bit set, of the others with it clear."""
+    """On the steps at a loop-closure location: share of due visits with the bit set, of the others with it clear.
+    Over all steps: precision and recall of the action classifier's greedy loop-closure actions."""
     on = walks.loop >= 0
     due = walks.action > 0
     bit = (location_bits(aux_logits, walks.loop, n_loops) > 0).numpy()
+    chosen = action_logits(aux_logits, n_loops).argmax(-1).numpy()
+    correct = int(((chosen == walks.action) & due).sum())
     return {"due_recalled": float(bit[on & due].mean()) if (on & due).any() else float("nan"),
             "first_visits_recognised": float((~bit[on & ~due]).mean()) if (on & ~due).any() else float("nan"),
-            "due_visits": int((on & due).sum()), "other_visits": int((on & ~due).sum())}
+            "due_visits": int((on & due).sum()), "other_visits": int((on & ~due).sum()),
+            "action_precision": correct / max(int((chosen > 0).sum()), 1),
+            "action_recall": correct / max(int(due.sum()), 1)}
 
 
 class MemoryPretrainer:
@@ -95,6 +109,8 @@ class MemoryPretrainer:
     def __init__(self, trainer: Trainer, cfg: PretrainConfig):
         if trainer.actor.aux_head is None:
             raise ValueError("memory pretraining needs the actor's auxiliary head (aux_coef > 0)")
+        if trainer.cfg.aux_targets != "visited+place+action":
+            raise ValueError("memory pretraining needs the aux targets visited+place+action (their action classifier)")
         self.trainer, self.cfg = trainer, cfg
         self.n_loops = trainer.grid.n_loops
         actor = trainer.actor
@@ -124,7 +140,8 @@ class MemoryPretrainer:
         return loss, aux
 
     def run(self, progress: Callable[[int, dict], None] | None = None) -> list[dict]:
-        """Record the walks, train for ``epochs``, copy the encoder and LSTM to the critic; per-epoch statistics."""
+        """Record the walks, train for ``epochs``, copy the encoder and LSTM to the critic (and the action
+        classifier to the policy head, with ``policy_from_aux``); per-epoch statistics."""
         cfg, grid = self.cfg, self.trainer.grid
         exclude = self.trainer.cfg.exclude_last
         start = time.perf_counter()
@@ -151,4 +168,8 @@ class MemoryPretrainer:
         actor, critic = self.trainer.actor, self.trainer.critic
         critic.encoder.load_state_dict(actor.encoder.state_dict())
         critic.lstm.load_state_dict(actor.lstm.state_dict())
+        if cfg.policy_from_aux:
+            with torch.no_grad():
+                actor.head.weight.copy_(actor.aux_head.weight[2 * self.n_loops + 1:])
+                actor.head.bias.copy_(actor.aux_head.bias[2 * self.n_loops + 1:])
         return history

@@ -58,11 +58,16 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
                                       "many epochs (0 = off; docs/rl.md)")] = 0,
         pretrain_walks: Annotated[int, typer.Option("--pretrain-walks", help="random walks for pretraining")] = 512,
         pretrain_length: Annotated[int, typer.Option("--pretrain-length", help="steps per pretraining walk")] = 128,
+        pretrain_policy: Annotated[bool, typer.Option(
+            "--pretrain-policy/--no-pretrain-policy",
+            help="after pretraining, start the policy head as a copy of the aux correct-action classifier "
+                 "(an imitation start that PPO fine-tunes; docs/rl.md)")] = False,
     ) -> None:
         """Train a PPO loop-closure policy for a grid map and export it to ONNX."""
         try:
             from rl.export import export_trainer
             from rl.ppo import TrainConfig, Trainer
+            from rl.pretrain import PretrainConfig
         except ImportError as exc:
             raise user_error(f"training needs the train extra (pip install -e '.[train]'): {exc}") from exc
         from tqdm import tqdm
@@ -76,6 +81,8 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
             raise user_error("--steps, --envs, --n-steps must be positive and 0 < --b1 <= --b2")
         if pretrain_epochs < 0 or (pretrain_epochs and (pretrain_walks <= 0 or pretrain_length <= 0)):
             raise user_error("--pretrain-epochs must be >= 0, --pretrain-walks and --pretrain-length positive")
+        if pretrain_policy and not pretrain_epochs:
+            raise user_error("--pretrain-policy needs --pretrain-epochs > 0")
         if pretrain_epochs and resume:
             raise user_error("--pretrain-epochs starts a run; it cannot be combined with --resume")
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -95,7 +102,9 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
                 trainer = Trainer(cfg, grid_map)
         except (MapError, ValueError) as exc:
             raise user_error(str(exc)) from exc
-        pretraining = _pretrain(trainer, pretrain_epochs, pretrain_walks, pretrain_length, seed, console, user_error)
+        pretraining = _pretrain(trainer, PretrainConfig(epochs=pretrain_epochs, walks=pretrain_walks,
+                                                        length=pretrain_length, seed=seed,
+                                                        policy_from_aux=pretrain_policy), console, user_error)
         bar = tqdm(total=steps, initial=trainer.global_step, unit="step", desc=f"train-lc {trainer.grid.name}")
 
         def progress(step: int, stats: dict) -> None:
@@ -169,17 +178,17 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
                    f"(target >= 95 % / >= 80 %; dissertation 80 % / 67 %).", path=write)
 
 
-def _pretrain(trainer, epochs: int, walks: int, length: int, seed: int, console, user_error) -> dict | None:
+def _pretrain(trainer, cfg, console, user_error) -> dict | None:
     """Supervised pretraining of the visit memory (rl/pretrain.py) before PPO; its settings and history."""
-    if not epochs:
+    if not cfg.epochs:
         return None
     from dataclasses import asdict
 
     from tqdm import tqdm
 
-    from rl.pretrain import MemoryPretrainer, PretrainConfig
+    from rl.pretrain import MemoryPretrainer
 
-    cfg = PretrainConfig(epochs=epochs, walks=walks, length=length, seed=seed)
+    epochs = cfg.epochs
     try:
         pretrainer = MemoryPretrainer(trainer, cfg)
     except ValueError as exc:
@@ -189,13 +198,17 @@ def _pretrain(trainer, epochs: int, walks: int, length: int, seed: int, console,
     def progress(epoch: int, row: dict) -> None:
         bar.update(epoch - bar.n)
         bar.set_postfix(loss=f"{row['loss']:.3f}", due=f"{row['due_recalled']:.2f}",
-                        first=f"{row['first_visits_recognised']:.2f}")
+                        first=f"{row['first_visits_recognised']:.2f}", P=f"{row['action_precision']:.2f}",
+                        R=f"{row['action_recall']:.2f}")
 
     history = pretrainer.run(progress)
     bar.close()
     last = history[-1]
     console.print(f"visit memory after {epochs} epochs ({last['wall_s']:.0f} s), held-out walks: due visits "
-                  f"recalled {last['due_recalled']:.1%}, first visits recognised {last['first_visits_recognised']:.1%}")
+                  f"recalled {last['due_recalled']:.1%}, first visits recognised "
+                  f"{last['first_visits_recognised']:.1%}; "
+                  f"action classifier P {last['action_precision']:.1%} R {last['action_recall']:.1%}"
+                  + (" (now the policy head)" if cfg.policy_from_aux else ""))
     return {"config": asdict(cfg), "history": history}
 
 

@@ -13,8 +13,9 @@ import pytest
 torch = pytest.importorskip("torch", reason="the train extra (torch) is not installed")
 
 from rl.gridmap import GridMap  # noqa: E402
-from rl.ppo import TrainConfig, Trainer  # noqa: E402
-from rl.pretrain import MemoryPretrainer, PretrainConfig, Walks, memory_scores, record_walks  # noqa: E402
+from rl.ppo import TrainConfig, Trainer, distinct_frames  # noqa: E402
+from rl.pretrain import (MemoryPretrainer, PretrainConfig, Walks, action_logits, memory_scores,  # noqa: E402
+                         record_walks)
 
 
 def test_recorded_walks_are_seeded_and_a_loop_closure_is_due_exactly_where_the_visit_bit_is_set():
@@ -39,8 +40,12 @@ def test_memory_scores_count_the_bit_of_the_location_stood_on():
     logits[0, 0, 0] = 5.0  # bit of location 0 set at t=0: due recalled
     logits[2, 0, 1] = 5.0  # bit of location 1 set at t=2: the first visit is not recognised
     logits[1, 0, 1] = 5.0  # a bit set where the agent stands on no location does not count
+    logits[0, 0, 2 * 2 + 1 + 1] = 5.0  # action classifier: loop closure at location 0 at t=0 (correct)
+    logits[2, 0, 2 * 2 + 1 + 2] = 5.0  # and at location 1 at t=2 (a first visit: wrong); "none" elsewhere
+    logits[1:, 0, 2 * 2 + 1] = 1.0
     scores = memory_scores(logits, walks, n_loops=2)
-    assert scores == {"due_recalled": 0.5, "first_visits_recognised": 0.0, "due_visits": 2, "other_visits": 1}
+    assert scores == {"due_recalled": 0.5, "first_visits_recognised": 0.0, "due_visits": 2, "other_visits": 1,
+                      "action_precision": 0.5, "action_recall": 0.5}
 
 
 def test_pretraining_teaches_the_lstm_the_visit_memory_and_starts_the_critic_with_it():
@@ -64,23 +69,49 @@ def test_pretraining_teaches_the_lstm_the_visit_memory_and_starts_the_critic_wit
         assert torch.equal(p, trainer.critic.encoder.state_dict()[name]), name
 
 
-def test_pretraining_needs_the_auxiliary_head():
+def test_pretraining_needs_the_auxiliary_head_with_its_action_classifier():
     trainer = Trainer(TrainConfig(map="config1", n_envs=2, minibatches=2, threads=1, aux_coef=0.0))
     with pytest.raises(ValueError, match="auxiliary head"):
         MemoryPretrainer(trainer, PretrainConfig(epochs=1))
+    trainer = Trainer(TrainConfig(map="config1", n_envs=2, minibatches=2, threads=1, aux_targets="visited"))
+    with pytest.raises(ValueError, match="visited\\+place\\+action"):
+        MemoryPretrainer(trainer, PretrainConfig(epochs=1))
+
+
+def test_policy_from_aux_starts_the_policy_as_the_action_classifier():
+    trainer = Trainer(TrainConfig(map="config2", n_envs=2, minibatches=2, threads=1,
+                                  aux_targets="visited+place+action"))
+    MemoryPretrainer(trainer, PretrainConfig(epochs=1, walks=8, length=32, held_out=2, policy_from_aux=True)).run()
+    walks = record_walks(trainer.grid, n=3, length=40, seed=77)
+    actor = trainer.actor
+    with torch.no_grad():
+        frames, index = distinct_frames(walks.obs)
+        starts = torch.zeros(40, 3, dtype=torch.bool)
+        starts[0] = True
+        policy, aux = actor.sequence(frames, index, starts, *actor.initial_state(3), with_aux=True)
+    classifier = action_logits(aux, trainer.grid.n_loops)
+    assert policy.shape == classifier.shape == (40, 3, trainer.grid.n_loops + 1)
+    assert torch.allclose(policy, classifier) and policy.std() > 0.1  # a copy, not the near-uniform fresh head
 
 
 def test_train_lc_pretrains_then_runs_ppo_and_records_the_pretraining_and_the_loss_balance(tmp_path):
     out = tmp_path / "p.onnx"
     args = [sys.executable, "-m", "service", "train-lc", "--map", "config1", "--steps", "200", "--envs", "2",
             "--b1", "16", "--b2", "48", "--aux-targets", "visited+place+action", "--pretrain-epochs", "2",
-            "--pretrain-walks", "16", "--pretrain-length", "48", "--balance-first-visits", "--out", str(out)]
+            "--pretrain-walks", "16", "--pretrain-length", "48", "--balance-first-visits", "--pretrain-policy",
+            "--out", str(out)]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     res = subprocess.run(args, env=env, capture_output=True, text=True, timeout=240)
     assert res.returncode == 0, res.stderr[-2000:]
     assert "visit memory after 2 epochs" in res.stdout
     meta = json.loads(out.with_suffix(".json").read_text())
     assert meta["pretrain"]["config"]["walks"] == 16 and len(meta["pretrain"]["history"]) == 2
+    assert meta["pretrain"]["config"]["policy_from_aux"] is True
+    assert 0 <= meta["pretrain"]["history"][-1]["action_recall"] <= 1
     assert meta["steps"] >= 200 and meta["train"]["balance_first_visits"] is True
     bad = subprocess.run([*args, "--resume"], env=env, capture_output=True, text=True, timeout=120)
     assert bad.returncode == 1 and "--resume" in bad.stderr
+    at = args.index("--pretrain-epochs")
+    no_pretraining = args[:at] + args[at + 2:]
+    bad = subprocess.run(no_pretraining, env=env, capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 1 and "--pretrain-policy needs --pretrain-epochs" in bad.stderr
