@@ -174,3 +174,23 @@ def test_an_object_whose_seen_part_leaves_the_image_is_associated_by_its_moved_d
     assert associate(chair, prev, current, cur, K, far, config).pairs == []
     rows = out_of_view_scores(["chair"], [moved_box_points(chair[0].box, prev, K, T)], current, cur, K, config)
     assert list(rows) == [0] and rows[0][0] >= config.alpha
+
+
+def test_the_out_of_view_test_also_compares_heights_when_the_two_seen_parts_lie_at_different_depths() -> None:
+    """The current view sees a part of the object 0.4 m deeper than the part the previous view saw, over the
+    same heights (rows scaled by depth): the depth test rejects the pair, the height test accepts it."""
+    K, T, prev, _ = _side_by_side_views()
+    rng = np.random.default_rng(1)
+    cur = np.full((480, 640), np.nan)
+    cur[173:290, 395:545] = 2.4 + 0.005 * rng.standard_normal((117, 150))  # y in [-0.16, 0.24] m, as before
+    chair = [Detection("chair", 0.9, (270.0, 200.0, 470.0, 300.0))]
+    current = [Detection("chair", 0.9, (395.0, 173.0, 545.0, 290.0))]
+    config = NPDAConfig()
+    assert config.out_of_view_height
+    assert associate(chair, prev, current, cur, K, T, config).pairs == [(0, 0)]
+    depth_only = associate(chair, prev, current, cur, K, T, replace(config, out_of_view_height=False))
+    assert depth_only.pairs == [] and depth_only.scores[0, 0] < config.alpha
+    lower = np.full((480, 640), np.nan)  # the same deeper part, but 0.3 m lower: nothing matches
+    lower[235:352, 395:545] = cur[173:290, 395:545]
+    moved_down = [Detection("chair", 0.9, (395.0, 235.0, 545.0, 352.0))]
+    assert associate(chair, prev, moved_down, lower, K, T, config).pairs == []

@@ -137,6 +137,7 @@ def ablation_configs(base: NPDAConfig) -> dict[str, NPDAConfig]:
     out["never warp"] = replace(base, warp_tau=np.inf, warp_phi=np.inf)
     out["warp every pixel (step 1)"] = replace(base, warp_step=1)
     out["no out-of-view test"] = replace(base, out_of_view_gap_m=None)
+    out["out-of-view test on depth only, 0.5 m gap"] = replace(base, out_of_view_height=False, out_of_view_gap_m=0.5)
     return out
 
 
@@ -242,12 +243,14 @@ def run_association_bench(console: Console, seeds: list[int], frames: int, write
     base, k = NPDAConfig(), keyframe_step(frames)
     variants = ablation_configs(base)
     never, in_view_only = variants["never warp"], variants["no out-of-view test"]
+    depth_only = variants["out-of-view test on depth only, 0.5 m gap"]
     ablation = {name: Counts() for name in variants}
     per_seed: dict[int, Counts] = {}
     n_pairs: dict[int, int] = {}
     warped: dict[tuple[int, int], Counts] = {}
     plain: dict[tuple[int, int], Counts] = {}
     covisible: dict[tuple[int, int], Counts] = {}
+    oov_depth: dict[tuple[int, int], Counts] = {}
     timing: dict[str, float] = {}
     for seed in seeds:
         console.print(f"seed {seed}: rendering {frames} frames")
@@ -264,6 +267,7 @@ def run_association_bench(console: Console, seeds: list[int], frames: int, write
             warped.setdefault(cell, Counts()).add(count_pairs(scene, pairs, base))
             plain.setdefault(cell, Counts()).add(count_pairs(scene, pairs, never))
             covisible.setdefault(cell, Counts()).add(count_pairs(scene, pairs, in_view_only))
+            oov_depth.setdefault(cell, Counts()).add(count_pairs(scene, pairs, depth_only))
         if not timing:
             timing["NPDA 10 x 10 (U matrix + gates + assignment)"], timing["NPDA 10 x 10 incl. warping"] = \
                 _npda_10x10(scene, base, k)
@@ -272,10 +276,14 @@ def run_association_bench(console: Console, seeds: list[int], frames: int, write
     command = "objslam bench association --seeds " + ",".join(map(str, seeds)) + \
         (f" --frames {frames}" if frames != 300 else "")
     result = {"consecutive": ablation["default"], "per_seed": per_seed, "keyframe_pairs": n_pairs,
-              "grid_warped": warped, "grid_plain": plain, "grid_covisible": covisible, "ablation": ablation,
+              "grid_warped": warped, "grid_plain": plain, "grid_covisible": covisible,
+              "grid_out_of_view_depth_only": oov_depth, "ablation": ablation,
               "timing": timing}
     _record_consecutive(console, result, k, command, write)
-    _record_grid(console, warped, plain, covisible, per_cell, command, write)
+    _record_grid(console, {"with depth warping": warped,
+                           "with depth warping, out-of-view test on depth only with a 0.5 m gap (before)": oov_depth,
+                           "with depth warping, no out-of-view test": covisible, "without depth warping": plain},
+                 per_cell, command, write)
     _record_ablation(console, ablation, k, command, write)
     _record_timing(console, timing, command, write)
     return result
@@ -301,11 +309,10 @@ def _record_consecutive(console: Console, result: dict, k: int, command: str, wr
            markdown_table(header, rows), notes, write)
 
 
-def _record_grid(console: Console, warped: dict, plain: dict, covisible: dict, per_cell: int, command: str,
+def _record_grid(console: Console, variants: dict[str, dict], per_cell: int, command: str,
                  write: Path | None) -> None:
     parts = []
-    for title, cells in (("with depth warping", warped), ("with depth warping, no out-of-view test", covisible),
-                         ("without depth warping", plain)):
+    for title, cells in variants.items():
         md, rows, filled, p_ok, r_ok = _grid_table(cells)
         show_table(console, f"NPDA over the Table 2.2 grid, {title}",
               ["tau \\ phi"] + [f"<= {PHI_EDGES[c + 1]:g}" for c in range(8)], rows)
@@ -317,8 +324,10 @@ def _record_grid(console: Console, warped: dict, plain: dict, covisible: dict, p
              f"rotation phi (rad, eq. 2.16) into (previous edge, edge]; at most {per_cell} pairs per cell per seed, "
              f"evenly spread. Empty cells: the orbit ties rotation to translation. Without warping the box gate "
              f"still uses boxes moved by the true pose; only the depth is not warped. Out-of-view test: a previous box "
-             f"whose object points mostly leave the current image is also tested with those points' depths in the "
-             f"current camera, against same-class current boxes within 0.5 m (`NPDAConfig.out_of_view_gap_m`).")
+             f"whose object points mostly leave the current image is also tested with those points' depths, and "
+             f"their heights (camera y; `NPDAConfig.out_of_view_height`), in the current camera, against same-class "
+             f"current boxes within {NPDAConfig().out_of_view_gap_m:g} m (`NPDAConfig.out_of_view_gap_m`): two "
+             f"views of one object that show different parts of it differ in depth, hardly in height.")
     record("association-grid", "NPDA with and without depth warping over Table 2.2's motion grid", command,
            "\n\n".join(parts), notes, write)
 
