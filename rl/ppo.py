@@ -245,6 +245,8 @@ class Trainer:
         self.buffer = Buffer.empty(cfg.rollout, cfg.n_envs, cfg.hidden, self.grid.n_loops)
         self.global_step = 0
         self.curve: list[dict] = []
+        # carried in checkpoints: the memory pretraining's record and the wall time of earlier segments
+        self.history: dict = {"pretrain": None, "wall_s": 0.0}
         obs, _ = self.envs.reset(seed=cfg.seed)
         self.next_obs, self.next_start = obs, np.ones(cfg.n_envs, bool)
         self.state = [t.numpy() for t in (*self.actor.initial_state(cfg.n_envs), *self.critic.initial_state(cfg.n_envs))]
@@ -451,7 +453,7 @@ class Trainer:
         tmp = Path(path).with_suffix(".tmp")
         torch.save({"config": asdict(self.cfg), "grid": self.grid.to_json(), "actor": self.actor.state_dict(),
                     "critic": self.critic.state_dict(), "optimizer": self.optimizer.state_dict(),
-                    "global_step": self.global_step, "curve": self.curve}, tmp)
+                    "global_step": self.global_step, "curve": self.curve, "history": self.history}, tmp)
         tmp.replace(path)
 
     @classmethod
@@ -473,6 +475,7 @@ class Trainer:
         trainer.critic.load_state_dict(ckpt["critic"])
         trainer.optimizer.load_state_dict(ckpt["optimizer"])
         trainer.global_step, trainer.curve = ckpt["global_step"], ckpt["curve"]
+        trainer.history = {**trainer.history, **ckpt.get("history", {})}
         return trainer
 
 

@@ -114,13 +114,16 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
             bar.set_postfix(ret="-" if ret is None else f"{ret:.0f}", P=f"{stats['lc_correct'] / taken:.2f}",
                             R=f"{stats['lc_correct'] / due:.2f}", n=stats["batch_length"])
 
+        if pretraining:
+            trainer.history = {"pretrain": pretraining, "wall_s": pretraining["history"][-1]["wall_s"]}
         result = trainer.train(checkpoint, progress)
         bar.close()
-        pretrain_s = pretraining["history"][-1]["wall_s"] if pretraining else 0.0
-        export_trainer(trainer, out, result.wall_s + pretrain_s, pretraining)  # wall time: pretraining + PPO
+        trainer.history["wall_s"] += result.wall_s  # all segments: pretraining, PPO, resumed PPO
+        trainer.save(checkpoint)
+        export_trainer(trainer, out, trainer.history["wall_s"], trainer.history["pretrain"])
         plot_reward_curves({f"{trainer.grid.name} ({trainer.cfg.batch})": trainer.curve}, out.with_suffix(".png"),
                            f"loop-closure PPO on {trainer.grid.name}")
-        console.print(f"{trainer.global_step} steps in {result.wall_s + pretrain_s:.0f} s -> {out} "
+        console.print(f"{trainer.global_step} steps in {trainer.history['wall_s']:.0f} s -> {out} "
                       f"(+ {out.with_suffix('.json').name}, {checkpoint.name}, {out.with_suffix('.png').name})")
 
     @app.command("eval-lc")

@@ -115,3 +115,9 @@ def test_train_lc_pretrains_then_runs_ppo_and_records_the_pretraining_and_the_lo
     no_pretraining = args[:at] + args[at + 2:]
     bad = subprocess.run(no_pretraining, env=env, capture_output=True, text=True, timeout=120)
     assert bad.returncode == 1 and "--pretrain-policy needs --pretrain-epochs" in bad.stderr
+    resume = [sys.executable, "-m", "service", "train-lc", "--steps", "400", "--resume", "--out", str(out)]
+    res = subprocess.run(resume, env=env, capture_output=True, text=True, timeout=240)
+    assert res.returncode == 0, res.stderr[-2000:]
+    resumed = json.loads(out.with_suffix(".json").read_text())
+    assert resumed["steps"] >= 400 and resumed["pretrain"] == meta["pretrain"]  # carried in the checkpoint
+    assert resumed["wall_s"] > meta["wall_s"]  # wall time of all segments
