@@ -109,6 +109,12 @@ class TrainConfig:
 AUX_TARGETS = {"visited": (1, 0), "visited+here+due": (3, 0), "visited+place+action": (3, 2)}
 
 
+def aux_action_outputs(n_loops: int) -> slice:
+    """Where the correct-action classifier's L + 1 logits sit among the aux head's "visited+place+action"
+    outputs: after the L visit bits and the L + 1 place logits."""
+    return slice(2 * n_loops + 1, 3 * n_loops + 2)
+
+
 def batch_length(targets: np.ndarray, n_actions: int, b1: int, b2: int) -> int:
     """Eq. 3.20: the n in [b1, b2] maximising the entropy of the correct actions of steps [0, n).
 
@@ -318,7 +324,8 @@ class Trainer:
         bce = nn.functional.binary_cross_entropy_with_logits(aux_logits[..., :L], bits)
         ce = nn.functional.cross_entropy
         place_loss = ce(aux_logits[..., L:2 * L + 1].reshape(-1, L + 1), place.reshape(-1), reduction="none")
-        action_loss = ce(aux_logits[..., 2 * L + 1:].reshape(-1, L + 1), action.reshape(-1), reduction="none")
+        action_loss = ce(aux_logits[..., aux_action_outputs(L)].reshape(-1, L + 1), action.reshape(-1),
+                         reduction="none")
         return bce + (place_w.reshape(-1) * place_loss).mean() + (action_w.reshape(-1) * action_loss).mean()
 
     def aux_target_bits(self, T: int) -> np.ndarray:

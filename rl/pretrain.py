@@ -31,7 +31,7 @@ from torch import nn
 
 from rl.env import GridRules, LoopClosureGrid
 from rl.gridmap import GridMap
-from rl.ppo import Trainer, aux_classifier_targets, distinct_frames
+from rl.ppo import Trainer, aux_action_outputs, aux_classifier_targets, distinct_frames
 
 
 @dataclass
@@ -85,7 +85,7 @@ def location_bits(aux_logits: torch.Tensor, loop: np.ndarray, n_loops: int) -> t
 
 def action_logits(aux_logits: torch.Tensor, n_loops: int) -> torch.Tensor:
     """The correct-action classifier's logits: the last ``n_loops + 1`` aux outputs ("visited+place+action")."""
-    return aux_logits[..., 2 * n_loops + 1:]
+    return aux_logits[..., aux_action_outputs(n_loops)]
 
 
 def memory_scores(aux_logits: torch.Tensor, walks: Walks, n_loops: int) -> dict:
@@ -170,6 +170,7 @@ class MemoryPretrainer:
         critic.lstm.load_state_dict(actor.lstm.state_dict())
         if cfg.policy_from_aux:
             with torch.no_grad():
-                actor.head.weight.copy_(actor.aux_head.weight[2 * self.n_loops + 1:])
-                actor.head.bias.copy_(actor.aux_head.bias[2 * self.n_loops + 1:])
+                rows = aux_action_outputs(self.n_loops)
+                actor.head.weight.copy_(actor.aux_head.weight[rows])
+                actor.head.bias.copy_(actor.aux_head.bias[rows])
         return history
