@@ -20,6 +20,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from perception.features import transform  # noqa: E402
+from perception.warp import project  # noqa: E402
 from service.sources import open_dataset  # noqa: E402
 from service.sources.tum import read_trajectory  # noqa: E402
 
@@ -28,12 +30,9 @@ def draw_objects(rgb: np.ndarray, world_to_camera: np.ndarray, K: np.ndarray, ob
     """BGR copy of ``rgb`` with each object centre in front of the camera and inside the image marked."""
     img = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
     h, w = img.shape[:2]
-    for obj in objects:
-        p = world_to_camera[:3, :3] @ np.asarray(obj["mean"], float) + world_to_camera[:3, 3]
-        if p[2] < 0.2:
-            continue
-        u, v = (K @ p)[:2] / p[2]
-        if 0 <= u < w and 0 <= v < h:
+    centres = transform(world_to_camera, np.array([obj["mean"] for obj in objects], float).reshape(-1, 3))
+    for obj, (u, v), z in zip(objects, *project(centres, K)):
+        if z >= 0.2 and 0 <= u < w and 0 <= v < h:
             cv2.circle(img, (int(u), int(v)), 8, (0, 0, 255), 3)
             cv2.putText(img, f"{obj['id']}:{obj['label']}", (int(u) + 10, int(v)), cv2.FONT_HERSHEY_SIMPLEX, 0.8,
                         (0, 255, 255), 2)
