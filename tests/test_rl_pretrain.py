@@ -91,7 +91,10 @@ def test_policy_from_aux_starts_the_policy_as_the_action_classifier():
         policy, aux = actor.sequence(frames, index, starts, *actor.initial_state(3), with_aux=True)
     classifier = action_logits(aux, trainer.grid.n_loops)
     assert policy.shape == classifier.shape == (40, 3, trainer.grid.n_loops + 1)
-    assert torch.allclose(policy, classifier) and policy.std() > 0.1  # a copy, not the near-uniform fresh head
+    # the same weights on the same features, through matrix products of different shapes (the classifier is a
+    # slice of the auxiliary head's): equal up to float32 rounding, which depends on the CPU's GEMM kernels
+    torch.testing.assert_close(policy, classifier, rtol=1e-4, atol=1e-6)
+    assert policy.std() > 0.1  # a copy, not the near-uniform fresh head
 
 
 def test_train_lc_pretrains_then_runs_ppo_and_records_the_pretraining_and_the_loss_balance(tmp_path):
