@@ -14,6 +14,7 @@ solver is rebuilt from the log without it: the graph is then exactly as before t
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -23,6 +24,7 @@ from gtsam.symbol_shorthand import L, X
 
 from graph.errors import SolverError
 from graph.factors import FactorRecord, from_columns, pose_noise, to_columns
+from graph.keyframes import Keyframes
 from graph.landmarks import Landmarks
 
 __all__ = ["FactorRecord", "NoiseSettings", "PoseGraph", "SolverError", "pose_noise"]
@@ -51,7 +53,7 @@ class NoiseSettings:
     partial_relinearization_check: bool = True
 
 
-class PoseGraph(Landmarks):
+class PoseGraph(Keyframes, Landmarks):
     """Keyframe poses ``X(i)`` (i = 0, 1, ...) and landmarks ``L(j)`` in an incremental iSAM2 graph."""
 
     def __init__(self, noise: NoiseSettings = NoiseSettings()):
@@ -70,6 +72,7 @@ class PoseGraph(Landmarks):
         self.num_keyframes = 0
         self.num_factors = 0
         self.updates = 0
+        self.timings: list[float] | None = None  # a list: the seconds of each ISAM2.update call are appended
 
     def _new_isam(self) -> gtsam.ISAM2:
         params = gtsam.ISAM2Params()
@@ -79,63 +82,10 @@ class PoseGraph(Landmarks):
         params.setFactorization(self.factorization)
         return gtsam.ISAM2(params)
 
-    # ------------------------------------------------------------ keyframes
-
-    def add_first(self, pose: np.ndarray) -> int:
-        """Anchor keyframe 0 at ``pose`` (camera-to-world) with a tight prior."""
-        if self.num_keyframes:
-            raise ValueError("the graph already has a first keyframe")
-        n = self.noise
-        self._update([FactorRecord(0, -1, np.array(pose, float), n.prior_sigma_m, n.prior_sigma_deg)],
-                     [np.array(pose, float)])
-        return 0
-
-    def add_keyframe(self, relative: np.ndarray, sigma_m: float | None = None, sigma_deg: float | None = None) -> int:
-        """Append a keyframe linked to the previous one by the odometry ``relative`` pose (prev -> new).
-
-        Sigmas default to the configured odometry noise (external odometry); visual odometry passes its own.
-        """
-        if not self.num_keyframes:
-            raise ValueError("add_first must come before add_keyframe")
-        k = self.num_keyframes
-        if sigma_m is None:
-            sigma_m, sigma_deg = self.noise.odometry_sigma_m, self.noise.odometry_sigma_deg
-        rel = np.array(relative, float)
-        guess = gtsam.Pose3(self._latest).compose(gtsam.Pose3(rel)).matrix()
-        self._update([FactorRecord(k - 1, k, rel, sigma_m, sigma_deg or self.noise.odometry_sigma_deg)], [guess])
-        return k
-
-    def add_between(self, k_a: int, k_b: int, T_a_b: np.ndarray, sigma_m: float, sigma_deg: float) -> int:
-        """An extra Gaussian between-factor of existing keyframes (e.g. a skip edge of the odometry)."""
-        result = self._update([FactorRecord(k_a, k_b, np.array(T_a_b, float), sigma_m, sigma_deg)])
-        return int(result.getNewFactorsIndices()[0])
-
-    def add_loop(self, k_a: int, k_b: int, T_a_b: np.ndarray, sigma_m: float, sigma_deg: float,
-                 robust_k: float = 3.0, iterations: int = 10) -> int:
-        """Add a loop-closure between-factor (pose of b in a) under a Huber kernel; returns its factor index.
-
-        Huber rather than Cauchy: after long drift a true loop starts tens of sigmas away, where Cauchy's
-        weight vanishes and the loop would barely pull; outliers are kept out by the verifier instead.
-        """
-        result = self._update([FactorRecord(k_a, k_b, np.array(T_a_b, float), sigma_m, sigma_deg, robust_k)])
-        index = int(result.getNewFactorsIndices()[0])
-        self._converge(iterations)
-        return index
-
-    def _converge(self, iterations: int) -> None:
-        """Extra iSAM2 steps until the newest pose settles: a loop change moves many poses at once."""
-        for _ in range(iterations):
-            before = self._latest
-            self._update([])
-            if np.abs(self._latest - before).max() < 1e-5:
-                break
-
-    def remove_factors(self, indices: list[int]) -> None:
-        """Retract factors (e.g. a loop closure found inconsistent) through iSAM2's removeFactorIndices."""
-        self._update([], remove=indices)
-        self._converge(10)
-
     # ------------------------------------------------------------ queries
+
+    def _newest(self) -> np.ndarray:
+        return self._latest
 
     def pose(self, k: int) -> np.ndarray:
         """Current estimate of keyframe ``k`` (camera-to-world 4x4)."""
@@ -158,6 +108,21 @@ class PoseGraph(Landmarks):
     def marginal_covariance(self, k: int) -> np.ndarray:
         """6x6 marginal covariance of keyframe ``k`` (rotation, translation), from iSAM2's Bayes tree."""
         return np.asarray(self.isam.marginalCovariance(X(k)))
+
+    def optimum(self) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+        """Keyframe poses and landmark positions at the batch Levenberg-Marquardt optimum of the live factors,
+        started from the iSAM2 estimate (which stops short of it: a variable is relinearized only once its
+        update exceeds ``relinearize_threshold``). The graph itself is left as it is."""
+        factors = gtsam.NonlinearFactorGraph()
+        for i, f in enumerate(self.factors):
+            if i not in self._removed:
+                factors.add(f.to_gtsam())
+        values = gtsam.LevenbergMarquardtOptimizer(factors, self._current()).optimize()
+        rows = gtsam.utilities.extractPose3(values)
+        poses = np.tile(np.eye(4), (len(rows), 1, 1))
+        poses[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
+        poses[:, :3, 3] = rows[:, 9:]
+        return poses, {j: np.asarray(values.atPoint3(L(j))) for j in self._landmarks}
 
     def _current(self) -> gtsam.Values:
         if self._estimate is None:
@@ -202,19 +167,11 @@ class PoseGraph(Landmarks):
             initial.insert(X(self.num_keyframes + i), gtsam.Pose3(pose))
         for j, position in landmarks:
             initial.insertPoint3(L(j), np.asarray(position, float))
+        t0 = time.perf_counter()
         result = self.isam.update(graph, initial, list(remove)) if remove else self.isam.update(graph, initial)
-        self.factors.extend(factors)
-        self._initial.extend(poses)
-        for j, position in landmarks:
-            self._landmarks[j] = len(self._landmark_initial)
-            self._landmark_initial.append(np.asarray(position, float))
-        self._log.append((len(factors), len(poses), tuple(remove), tuple(j for j, _ in landmarks)))
-        if remove:
-            self._removed.update(remove)
-            self._drop_unconstrained(remove)
-        self.updates += 1
-        self.num_factors += len(factors) - len(remove)
-        self.num_keyframes += len(poses)
+        if self.timings is not None:
+            self.timings.append(time.perf_counter() - t0)
+        self._record(factors, poses, landmarks, remove)
         self._estimate = None
         if self.num_keyframes:
             self._latest = self.pose(self.num_keyframes - 1)

@@ -131,6 +131,9 @@ class GraphSettings(BaseModel):
     relinearize_threshold: float = Field(0.1, gt=0, description="iSAM2 relinearizeThreshold (gtsam's default; "
                                           "`objslam bench isam2`: p95 update 4x lower than 0.01, same ATE)")
     relinearize_skip: int = Field(1, ge=1)
+    window_keyframes: int = Field(400, ge=2, description="keyframes in the bounded iSAM2 window (older ones are "
+                                  "fixed there; the whole graph is solved in a child process)")
+    window_step: int = Field(100, ge=1, description="keyframes added before the window rolls forward")
 
 
 class PersistenceSettings(BaseModel):

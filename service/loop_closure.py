@@ -18,6 +18,7 @@ import numpy as np
 
 from graph.geometry import motion_magnitude, pose_to_tum, relative
 from graph.pose_graph import PoseGraph
+from graph.window import WindowedGraph
 from perception.odometry import Features, Rejected, Relative, RelativePoseEstimator
 from perception.place_recognition import PlaceIndex, global_descriptor
 
@@ -71,7 +72,7 @@ class Verified:
 class LoopCloser:
     """Candidates (appearance, and geometric proximity in the current estimate) + geometric verification."""
 
-    graph: PoseGraph
+    graph: PoseGraph | WindowedGraph
     estimator: RelativePoseEstimator
     config: LoopConfig = LoopConfig()
     records: list[dict[str, Any]] = field(default_factory=list)

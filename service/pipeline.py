@@ -18,7 +18,8 @@ import numpy as np
 from pydantic import BaseModel
 
 from graph.object_landmarks import LandmarkConfig, ObjectLandmarks
-from graph.pose_graph import NoiseSettings, PoseGraph
+from graph.pose_graph import NoiseSettings
+from graph.window import WindowedGraph, WindowSettings
 from perception.clustering import ObjectEllipsoid
 from perception.frame import CameraModel, Detection, Frame
 from perception.frontend import ExternalOdometry, KeyframePolicy, Step, VisualOdometry
@@ -137,7 +138,8 @@ class Pipeline:
         self._pending: deque[dict[str, Future]] = deque()  # per keyframe, oldest first: its unapplied mapping jobs
         self._objects_view: list = []  # the objects as of the last applied mapping (read by object_list)
         self.mapping_errors = 0
-        self.graph = PoseGraph(from_settings(NoiseSettings, settings.graph))
+        self.graph = WindowedGraph(from_settings(NoiseSettings, settings.graph),
+                                   from_settings(WindowSettings, settings.graph))
         self.policy = from_settings(KeyframePolicy, settings.keyframes, settings.odometry)
         self.odometry_config = from_settings(OdometryConfig, settings.odometry)
         self.frontend: ExternalOdometry | VisualOdometry | None = None
@@ -370,6 +372,7 @@ class Pipeline:
         """Stop the mapping thread (submitted jobs are finished first)."""
         self._detecting.shutdown(wait=True)
         self._mapping.shutdown(wait=True)
+        self.graph.close()
 
     def _color_from_body(self) -> np.ndarray:
         """The colour camera's pose in the keyframe (depth camera) frame: identity when registered."""
@@ -404,8 +407,10 @@ class Pipeline:
         return now
 
     def finish(self) -> None:
-        """End of a sequence (``run``): emit the open tracks and re-cluster the objects once more."""
+        """End of a sequence (``run``): the whole graph solved, the open tracks emitted, the objects re-clustered
+        once more."""
         self.flush()
+        self.graph.flush()
         if self.objects is not None and self.records:
             self.objects.finish()
             self._objects_view = list(self.objects.objects)
@@ -494,7 +499,7 @@ class Pipeline:
     def from_state(cls, settings: Settings, state: dict[str, Any], background: bool = False) -> Pipeline:
         """A pipeline that continues from ``state`` (of ``state()``) exactly as the saved one would have."""
         p = cls(settings, background)
-        p.graph = PoseGraph.from_state(state["graph"])
+        p.graph = WindowedGraph.from_state(state["graph"], from_settings(WindowSettings, settings.graph))
         if state["camera"] is not None:
             p._setup(state["camera"], state["external_odometry"])
             p.frontend.restore(state["frontend"])

@@ -177,7 +177,8 @@ def test_a_solver_failure_does_not_stop_mapping(service):
     storm = Storm(SEED)
     sent = _send_good(node, pub, storm, 12, 0)
     before = _get(client, f"{node.prefix}/status")
-    node.pipeline.graph.isam = _FailingOnce(node.pipeline.graph.isam)  # the next keyframe's update fails
+    window = node.pipeline.graph.local  # the iSAM2 window: the next keyframe's update fails
+    window.isam = _FailingOnce(window.isam)
     _send_good(node, pub, storm, 30, sent)
     after = _get(client, f"{node.prefix}/status")
     assert before["errors"] == {} and after["errors"] == {"solver": 1}
