@@ -293,50 +293,56 @@ class WindowedGraph(Keyframes, Landmarks):
 
     def state(self) -> dict[str, Any]:
         """``PoseGraph.state()``'s format (the whole graph's replay log), plus the window: where it starts, the
-        landmarks in the solver, removed factors and landmark estimates (``estimate`` holds the poses)."""
-        estimates = self.landmarks()
+        fixed keyframes and frozen landmarks, the window's own iSAM2 (its ``PoseGraph.state()``, replayed as
+        it is) and which of its factors is which, the landmarks in the solver and the removed factors."""
+        frozen = sorted(self._frozen)
         return {
             **PoseGraph.state(self),  # the replay log's fields, kept here under the same names
-            "window": {"settings": asdict(self.window), "start": self.start,
+            "window": {"settings": asdict(self.window), "start": self.start, "fixed": self._fixed.copy(),
+                       "frozen": np.array(frozen, np.int64),
+                       "frozen_estimates": np.array([self._frozen[j] for j in frozen]).reshape(-1, 3),
+                       "local": self.local.state(),
+                       "to_local": np.array(sorted(self._to_local.items()), np.int64).reshape(-1, 2),
                        "landmarks": np.array(sorted(self._landmarks), np.int64),
-                       "landmark_estimates": np.array([estimates[j] for j in sorted(self._landmarks)]).reshape(-1, 3),
                        "removed": np.array(sorted(self._removed), np.int64)},
         }
 
     @classmethod
     def from_state(cls, state: dict[str, Any], window: WindowSettings | None = None) -> WindowedGraph:
-        """The graph of ``state()`` (or of ``PoseGraph.state()``): a window that never rolled is replayed update
-        for update; a rolled one is rebuilt at the recorded estimate, and the whole graph replayed in the child."""
+        """The graph of ``state()`` (or of ``PoseGraph.state()``), its estimate exactly as saved: the window's
+        iSAM2 replayed update for update (a window that never rolled is the whole graph), the fixed keyframes
+        and frozen landmarks as they were, and the whole graph replayed in a new child."""
         saved = state.get("window")
         settings = window or (WindowSettings(**saved["settings"]) if saved else WindowSettings())
-        full = PoseGraph.from_state(state) if not saved or saved["start"] == 0 else None
-        graph = cls(full.noise if full else NoiseSettings(**state["noise"]), settings)
-        if full is not None:  # the window is the whole graph: take it over as it is
-            graph.local = full
-            graph.factors, graph._initial = list(full.factors), list(full._initial)
-            graph._landmark_initial, graph._log = list(full._landmark_initial), list(full._log)
-            graph._landmarks, graph._pending = dict(full._landmarks), full._pending
-            full._pending = {}  # the window's held-back observations are the graph's (the mixin of each keeps its own)
-            graph._removed = set(full._removed)
-            graph.num_keyframes, graph.num_factors, graph.updates = full.num_keyframes, full.num_factors, full.updates
-            graph._to_local = {i: i for i in range(len(full.factors)) if i not in full._removed}
+        rolled = bool(saved) and int(saved["start"]) > 0
+        local = PoseGraph.from_state(saved["local"] if rolled else state)
+        graph = cls(local.noise, settings)
+        graph.local = local
+        if not rolled:  # the window is the whole graph: its books are the graph's
+            graph.factors, graph._initial = list(local.factors), list(local._initial)
+            graph._landmark_initial, graph._log = list(local._landmark_initial), list(local._log)
+            graph._landmarks, graph._pending = dict(local._landmarks), local._pending
+            local._pending = {}  # held-back observations are the graph's (the mixin of each keeps its own)
+            graph._removed = set(local._removed)
+            graph.num_keyframes, graph.num_factors, graph.updates = local.num_keyframes, local.num_factors, \
+                local.updates
+            graph._to_local = {i: i for i in range(len(local.factors)) if i not in local._removed}
             graph._index(graph.factors, 0)
             return graph
         graph.factors = from_columns(state["factors"])
         graph._initial, graph._landmark_initial = list(state["initial"]), list(state["landmark_initial"])
         graph._log = [tuple(e) for e in state["updates"]]
-        ids = [int(j) for j in saved["landmarks"]]
-        graph._landmarks = {j: i for i, j in enumerate(ids)}
+        graph._landmarks = {int(j): i for i, j in enumerate(saved["landmarks"])}
         pending = from_columns(state["pending"])
         graph._pending = {int(j): [r for r in pending if r.b == j] for j in state["pending_landmarks"]}
         graph._removed = {int(i) for i in saved["removed"]}
         graph.num_keyframes = sum(e[1] for e in graph._log)
         graph.num_factors = len(graph.factors) - len(graph._removed)
         graph.updates = len(graph._log)
-        graph.local.factorization = state.get("factorization", "CHOLESKY")
         graph._index(graph.factors, 0)
-        graph._rebuild(int(saved["start"]), np.asarray(state["estimate"], float),
-                       dict(zip(ids, np.asarray(saved["landmark_estimates"], float))))
+        graph.start, graph._fixed = int(saved["start"]), np.asarray(saved["fixed"], float)
+        graph._frozen = {int(j): np.asarray(p, float) for j, p in zip(saved["frozen"], saved["frozen_estimates"])}
+        graph._to_local = {int(i): int(li) for i, li in saved["to_local"]}
         graph._global = _GlobalSolver(graph)
         return graph
 
