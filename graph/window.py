@@ -93,6 +93,7 @@ class WindowedGraph(Keyframes, Landmarks):
         self._frozen: dict[int, np.ndarray] = {}  # landmarks in the graph but not in the window
         self._global: _GlobalSolver | None = None
         self.global_solves = 0  # global estimates applied to the window
+        self.rebuilt = False  # until the window is first rebuilt it is the whole graph, update for update
         self.num_keyframes = self.num_factors = self.updates = 0
 
     # ------------------------------------------------------------ solver
@@ -262,14 +263,16 @@ class WindowedGraph(Keyframes, Landmarks):
             log.error("rebuilding the iSAM2 window failed, keeping the previous one: %s", exc)
             self.start, self._fixed, self.local, self._to_local, self._frozen = old
             return
-        self.local = graph
+        self.local, self.rebuilt = graph, True
         self._to_local = {i: int(li) for i, li in zip(owners, result.getNewFactorsIndices())}
         self._frozen = {j: np.asarray(landmarks[j], float) for j in self._landmarks.keys() - kept}
 
     def flush(self, timeout: float = 600.0) -> None:
         """Wait for the batch optimum of everything added so far and re-anchor the window there (e.g. before
         final outputs); between flushes the window is re-anchored at each roll, at iSAM2's newest estimate."""
-        if self._global is None:
+        if self._global is None:  # the window is the whole graph: its own batch optimum
+            if self.num_keyframes:
+                self._rebuild(self.start, *self.local.optimum())
             return
         self._global.request(exact=True)
         solved = self._global.receive(timeout)
@@ -293,19 +296,19 @@ class WindowedGraph(Keyframes, Landmarks):
 
     def state(self) -> dict[str, Any]:
         """``PoseGraph.state()``'s format (the whole graph's replay log), plus the window: where it starts, the
-        fixed keyframes and frozen landmarks, the window's own iSAM2 (its ``PoseGraph.state()``, replayed as
-        it is) and which of its factors is which, the landmarks in the solver and the removed factors."""
-        frozen = sorted(self._frozen)
-        return {
-            **PoseGraph.state(self),  # the replay log's fields, kept here under the same names
-            "window": {"settings": asdict(self.window), "start": self.start, "fixed": self._fixed.copy(),
-                       "frozen": np.array(frozen, np.int64),
-                       "frozen_estimates": np.array([self._frozen[j] for j in frozen]).reshape(-1, 3),
-                       "local": self.local.state(),
-                       "to_local": np.array(sorted(self._to_local.items()), np.int64).reshape(-1, 2),
-                       "landmarks": np.array(sorted(self._landmarks), np.int64),
-                       "removed": np.array(sorted(self._removed), np.int64)},
-        }
+        landmarks in the solver and the removed factors; once rebuilt, also the fixed keyframes and frozen
+        landmarks, the window's own iSAM2 (its ``PoseGraph.state()``, replayed as it is) and which of its
+        factors is which (before that the window is the whole graph, replayed from the log)."""
+        window = {"settings": asdict(self.window), "start": self.start,
+                  "landmarks": np.array(sorted(self._landmarks), np.int64),
+                  "removed": np.array(sorted(self._removed), np.int64)}
+        if self.rebuilt:
+            frozen = sorted(self._frozen)
+            window.update({"fixed": self._fixed.copy(), "frozen": np.array(frozen, np.int64),
+                           "frozen_estimates": np.array([self._frozen[j] for j in frozen]).reshape(-1, 3),
+                           "local": self.local.state(),
+                           "to_local": np.array(sorted(self._to_local.items()), np.int64).reshape(-1, 2)})
+        return {**PoseGraph.state(self), "window": window}  # the replay log's fields, kept here under the same names
 
     @classmethod
     def from_state(cls, state: dict[str, Any], window: WindowSettings | None = None) -> WindowedGraph:
@@ -314,11 +317,11 @@ class WindowedGraph(Keyframes, Landmarks):
         and frozen landmarks as they were, and the whole graph replayed in a new child."""
         saved = state.get("window")
         settings = window or (WindowSettings(**saved["settings"]) if saved else WindowSettings())
-        rolled = bool(saved) and int(saved["start"]) > 0
-        local = PoseGraph.from_state(saved["local"] if rolled else state)
+        rebuilt = bool(saved) and "local" in saved
+        local = PoseGraph.from_state(saved["local"] if rebuilt else state)
         graph = cls(local.noise, settings)
-        graph.local = local
-        if not rolled:  # the window is the whole graph: its books are the graph's
+        graph.local, graph.rebuilt = local, rebuilt
+        if not rebuilt:  # the window is the whole graph: its books are the graph's
             graph.factors, graph._initial = list(local.factors), list(local._initial)
             graph._landmark_initial, graph._log = list(local._landmark_initial), list(local._log)
             graph._landmarks, graph._pending = dict(local._landmarks), local._pending
@@ -343,7 +346,8 @@ class WindowedGraph(Keyframes, Landmarks):
         graph.start, graph._fixed = int(saved["start"]), np.asarray(saved["fixed"], float)
         graph._frozen = {int(j): np.asarray(p, float) for j, p in zip(saved["frozen"], saved["frozen_estimates"])}
         graph._to_local = {int(i): int(li) for i, li in saved["to_local"]}
-        graph._global = _GlobalSolver(graph)
+        if graph.start:
+            graph._global = _GlobalSolver(graph)
         return graph
 
     def _index(self, factors: list[FactorRecord], first: int) -> None:

@@ -72,6 +72,11 @@ def test_below_the_window_it_is_the_whole_graph_update_for_update(windowed):
         np.testing.assert_allclose(window.landmark(j), p, atol=1e-9)
     restored = WindowedGraph.from_state(window.state())
     assert np.array_equal(restored.poses(), window.poses())
+    window.flush()  # the end of a run: the batch optimum, where iSAM2 alone stops short
+    optimum = _optimum(full)
+    assert np.abs(full.poses() - optimum).max() > 10 * np.abs(window.poses() - optimum).max()
+    assert np.abs(window.poses() - optimum).max() < 1e-4 and window._global is None
+    assert np.array_equal(WindowedGraph.from_state(window.state()).poses(), window.poses())
 
 
 def _optimum(graph: PoseGraph) -> np.ndarray:
