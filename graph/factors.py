@@ -35,7 +35,8 @@ class FactorRecord:
     a -> b (``measurement`` = T_a_b). ``kind`` LANDMARK: a prior on landmark ``a`` (``b`` = -1, ``measurement``
     the world position) or the position of landmark ``b`` measured in keyframe ``a``'s camera frame
     (``measurement`` a 3-vector; a bearing-range factor with equivalent noise). ``huber_k`` set means a Huber
-    robust kernel; ``sigma_deg`` is unused by landmark factors.
+    robust kernel; ``sigma_deg`` is unused by landmark factors. A pose factor with ``covariance`` uses it instead
+    of the sigmas (a between-factor turned into a prior on its first keyframe, ``graph.window``).
     """
 
     a: int
@@ -45,6 +46,7 @@ class FactorRecord:
     sigma_deg: float
     huber_k: float | None = None
     kind: int = POSE
+    covariance: np.ndarray | None = None  # a full 6x6 (rotation, translation) covariance instead of the sigmas
 
     def to_gtsam(self) -> gtsam.NonlinearFactor:
         m = self.measurement
@@ -54,7 +56,8 @@ class FactorRecord:
                 return gtsam.PriorFactorPoint3(L(self.a), m, self._robust(noise))
             return gtsam.BearingRangeFactor3D(X(self.a), L(self.b), gtsam.Unit3(m), float(np.linalg.norm(m)),
                                               self._robust(position_noise(m, self.sigma_m)))
-        noise = self._robust(pose_noise(self.sigma_m, self.sigma_deg))
+        noise = self._robust(pose_noise(self.sigma_m, self.sigma_deg) if self.covariance is None
+                             else gtsam.noiseModel.Gaussian.Covariance(np.asarray(self.covariance, float)))
         if self.b < 0:
             return gtsam.PriorFactorPose3(X(self.a), gtsam.Pose3(m), noise)
         return gtsam.BetweenFactorPose3(X(self.a), X(self.b), gtsam.Pose3(m), noise)
@@ -77,13 +80,16 @@ def to_columns(records: list[FactorRecord]) -> dict[str, np.ndarray]:
             "measurement": measurement, "sigma_m": np.array([r.sigma_m for r in records], float),
             "sigma_deg": np.array([r.sigma_deg for r in records], float),
             "huber_k": np.array([np.nan if r.huber_k is None else r.huber_k for r in records], float),
-            "kind": np.array([r.kind for r in records], np.int64)}
+            "kind": np.array([r.kind for r in records], np.int64),
+            "covariance": np.array([np.full((6, 6), np.nan) if r.covariance is None else r.covariance
+                                    for r in records], float).reshape(-1, 6, 6)}
 
 
 def from_columns(c: dict[str, Any]) -> list[FactorRecord]:
     """The records of ``to_columns`` (columns without ``kind``, from before landmarks, are all POSE)."""
     kinds = c.get("kind", np.zeros(len(c["a"]), np.int64))
+    covariances = c.get("covariance", np.full((len(c["a"]), 6, 6), np.nan))
     return [FactorRecord(int(a), int(b), m[:3, 3].copy() if kind == LANDMARK else m, float(sm), float(sd),
-                         None if np.isnan(k) else float(k), int(kind))
-            for a, b, m, sm, sd, k, kind in zip(c["a"], c["b"], c["measurement"], c["sigma_m"], c["sigma_deg"],
-                                                c["huber_k"], kinds)]
+                         None if np.isnan(k) else float(k), int(kind), None if np.isnan(cov).any() else cov)
+            for a, b, m, sm, sd, k, kind, cov in zip(c["a"], c["b"], c["measurement"], c["sigma_m"], c["sigma_deg"],
+                                                     c["huber_k"], kinds, covariances)]

@@ -8,9 +8,11 @@ How (the foreground, ``WindowedGraph``):
 
 - **The window** is an iSAM2 (``PoseGraph``) over keyframes ``[start, n)`` and the landmarks they observe.
   Keyframes before ``start`` are *fixed* at their estimate, and each factor linking one to the window becomes
-  a unary factor on the window side, which is exact conditioning on the fixed past: a between-factor a -> b
-  with ``a`` fixed is a prior ``T_a @ T_ab`` on ``b`` with the same noise and kernel; a landmark measured
-  from a fixed keyframe is a world-position prior on the landmark with the measurement's sigma.
+  a unary factor on the window side, conditioning on the fixed past: a between-factor a -> b with ``a`` fixed
+  is a prior ``T_a @ T_ab`` on ``b`` with the same noise and kernel, with ``b`` fixed a prior ``T_b @ T_ab^-1``
+  on ``a`` whose covariance is carried through ``Ad(T_ab)`` (both exact); a landmark measured from a fixed
+  keyframe is a world-position prior on the landmark with the measurement's sigma (isotropic: to first order
+  the bearing-range factor's).
 - **Rolling**: when the window holds ``window_keyframes + window_step`` keyframes its oldest ``window_step``
   become fixed and the window is rebuilt from the factor records in one batch update. A landmark no window
   keyframe observes leaves the window at its estimate ("frozen"); a factor on it brings it back with its
@@ -41,6 +43,7 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
+import gtsam
 import numpy as np
 
 from graph.errors import SolverError
@@ -50,6 +53,8 @@ from graph.landmarks import Landmarks
 from graph.pose_graph import NoiseSettings, PoseGraph
 
 log = logging.getLogger(__name__)
+
+MAX_CHILD_STARTS = 3  # a child that keeps failing is not restarted again
 
 
 @dataclass(frozen=True)
@@ -92,6 +97,7 @@ class WindowedGraph(Keyframes, Landmarks):
         self._fixed = np.zeros((0, 4, 4))  # keyframes before ``start``
         self._frozen: dict[int, np.ndarray] = {}  # landmarks in the graph but not in the window
         self._global: _GlobalSolver | None = None
+        self._child_starts = 0
         self.global_solves = 0  # global estimates applied to the window
         self.rebuilt = False  # until the window is first rebuilt it is the whole graph, update for update
         self.num_keyframes = self.num_factors = self.updates = 0
@@ -208,8 +214,12 @@ class WindowedGraph(Keyframes, Landmarks):
             return replace(f, a=f.a - s, b=f.b - s)
         if f.b >= s:
             return replace(f, a=f.b - s, b=-1, measurement=fixed[f.a] @ f.measurement)
-        if f.a >= s:
-            return replace(f, b=-1, a=f.a - s, measurement=fixed[f.b] @ np.linalg.inv(f.measurement))
+        if f.a >= s:  # the prior's error is -Ad(T_ab) times the between-factor's: its covariance transformed so
+            adjoint = gtsam.Pose3(f.measurement).AdjointMap()
+            sigmas = np.r_[np.full(3, np.deg2rad(f.sigma_deg)), np.full(3, f.sigma_m)]
+            covariance = f.covariance if f.covariance is not None else np.diag(sigmas ** 2)
+            return replace(f, b=-1, a=f.a - s, measurement=fixed[f.b] @ np.linalg.inv(f.measurement),
+                           covariance=adjoint @ covariance @ adjoint.T)
         return None
 
     # ------------------------------------------------------------ rolling and re-anchoring
@@ -217,11 +227,30 @@ class WindowedGraph(Keyframes, Landmarks):
     def _roll(self) -> None:
         """Fix the oldest ``window_step`` keyframes and rebuild the window without them, at the whole graph's
         newest estimate when one has come back (else at the current one); then ask for the next solve."""
-        if self._global is None:
+        child = self._child()
+        solved = child.receive(0.0) if child is not None else None
+        if self._rebuild(self.num_keyframes - self.window.window_keyframes, *self._anchored(solved)) and solved:
+            self.global_solves += 1
+        if child is not None:
+            child.request()
+
+    def _child(self) -> _GlobalSolver | None:
+        """The whole-graph child, started (again, replaying everything) when it is not running; None once it
+        failed ``MAX_CHILD_STARTS`` times: the window then goes on alone, its fixed past as it stands."""
+        if self._global is not None and not self._global.dead:
+            return self._global
+        if self._global is not None:
+            log.error("the whole-graph child process stopped (exit code %s)", self._global.exit_code())
+            self._global.close()
+            self._global = None
+        if self._child_starts >= MAX_CHILD_STARTS:
+            return None
+        self._child_starts += 1
+        try:
             self._global = _GlobalSolver(self)
-        estimate, landmarks = self._anchored(self._global.receive(0.0))
-        self._rebuild(self.num_keyframes - self.window.window_keyframes, estimate, landmarks)
-        self._global.request()
+        except OSError as exc:
+            log.error("cannot start the whole-graph child process: %s", exc)
+        return self._global
 
     def _anchored(self, solved: tuple[np.ndarray, dict[int, np.ndarray]] | None
                   ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
@@ -236,11 +265,11 @@ class WindowedGraph(Keyframes, Landmarks):
         moved = np.concatenate([poses[:n], correction @ current[n:]])
         merged = {j: correction[:3, :3] @ p + correction[:3, 3] for j, p in landmarks.items()}
         merged.update({j: p for j, p in solved_landmarks.items() if j in self._landmarks})
-        self.global_solves += 1
         return moved, merged
 
-    def _rebuild(self, start: int, estimate: np.ndarray, landmarks: dict[int, np.ndarray]) -> None:
-        """A new window from ``start`` at the given estimate: one batch update of its keyframes and landmarks."""
+    def _rebuild(self, start: int, estimate: np.ndarray, landmarks: dict[int, np.ndarray]) -> bool:
+        """A new window from ``start`` at the given estimate: one batch update of its keyframes and landmarks.
+        False (and the window as it was) if iSAM2 rejects it."""
         old = self.start, self._fixed, self.local, self._to_local, self._frozen
         self.start, self._fixed = start, estimate[:start].copy()
         window = range(start, self.num_keyframes)
@@ -262,24 +291,31 @@ class WindowedGraph(Keyframes, Landmarks):
         except SolverError as exc:
             log.error("rebuilding the iSAM2 window failed, keeping the previous one: %s", exc)
             self.start, self._fixed, self.local, self._to_local, self._frozen = old
-            return
+            return False
         self.local, self.rebuilt = graph, True
         self._to_local = {i: int(li) for i, li in zip(owners, result.getNewFactorsIndices())}
         self._frozen = {j: np.asarray(landmarks[j], float) for j in self._landmarks.keys() - kept}
+        return True
 
     def flush(self, timeout: float = 600.0) -> None:
         """Wait for the batch optimum of everything added so far and re-anchor the window there (e.g. before
         final outputs); between flushes the window is re-anchored at each roll, at iSAM2's newest estimate."""
-        if self._global is None:  # the window is the whole graph: its own batch optimum
-            if self.num_keyframes:
-                self._rebuild(self.start, *self.local.optimum())
+        if not self.num_keyframes:
             return
-        self._global.request(exact=True)
-        solved = self._global.receive(timeout)
-        if solved is None:
-            log.warning("the whole-graph solve did not come back within %.0f s", timeout)
+        if self.start == 0:  # the window is the whole graph: its own batch optimum
+            poses, landmarks = self.local.optimum()
+            self._rebuild(0, poses, {**self._frozen, **landmarks})
             return
-        self._rebuild(self.start, *self._anchored(solved))
+        child = self._child()
+        if child is None:
+            return
+        child.request(exact=True)
+        solved = child.receive(timeout)
+        if child.outstanding or solved is None:
+            log.warning("the whole graph's batch optimum did not come back within %.0f s%s", timeout,
+                        "; re-anchoring at its last estimate" if solved is not None else "")
+        if solved is not None and self._rebuild(self.start, *self._anchored(solved)):
+            self.global_solves += 1
 
     @property
     def solve_latencies(self) -> list[float]:
@@ -347,7 +383,7 @@ class WindowedGraph(Keyframes, Landmarks):
         graph._frozen = {int(j): np.asarray(p, float) for j, p in zip(saved["frozen"], saved["frozen_estimates"])}
         graph._to_local = {int(i): int(li) for i, li in saved["to_local"]}
         if graph.start:
-            graph._global = _GlobalSolver(graph)
+            graph._child()
         return graph
 
     def _index(self, factors: list[FactorRecord], first: int) -> None:
@@ -386,6 +422,7 @@ class _GlobalSolver:
         self._asked = self._answered = 0
         self._newest: tuple[np.ndarray, dict[int, np.ndarray]] | None = None
         self._asked_at: dict[int, float] = {}
+        self.dead = False  # set when the child's socket closes (it exited or crashed)
         self.latencies: list[float] = []  # seconds from each request to its estimate's arrival
         self._arrived = threading.Condition()
         self._outbox: queue.SimpleQueue = queue.SimpleQueue()
@@ -402,6 +439,9 @@ class _GlobalSolver:
             try:
                 self._conn.send(message)
             except OSError:
+                with self._arrived:
+                    self.dead = True
+                    self._arrived.notify_all()
                 return
             if message is None:
                 return
@@ -410,21 +450,35 @@ class _GlobalSolver:
         while True:
             try:
                 token, poses, landmarks = self._conn.recv()
-            except (EOFError, OSError):
+            except (EOFError, OSError):  # the child is gone: nobody waits for it any longer
+                with self._arrived:
+                    self.dead = True
+                    self._arrived.notify_all()
                 return
             with self._arrived:
                 self._answered, self._newest = token, (poses, landmarks)
-                self.latencies.append(time.perf_counter() - self._asked_at.pop(token))
+                self.latencies.append(time.perf_counter() - self._asked_at[token])
+                self._asked_at = {t: at for t, at in self._asked_at.items() if t > token}
                 self._arrived.notify_all()
 
+    @property
+    def outstanding(self) -> bool:
+        """Whether a requested solve has not come back."""
+        with self._arrived:
+            return self._answered < self._asked
+
+    def exit_code(self) -> int | None:
+        return self._process.poll()
+
     def send(self, factors, poses, landmarks, remove, first: int) -> None:
-        self._outbox.put(("update", factors, poses, landmarks, remove, first))
+        if not self.dead:  # a dead child is replaced by a new one that replays everything
+            self._outbox.put(("update", factors, poses, landmarks, remove, first))
 
     def request(self, exact: bool = False) -> None:
         """Ask for a solve of everything sent so far: iSAM2's estimate, not while one is still outstanding; or
         ``exact``, the batch optimum (``PoseGraph.optimum``), in any case."""
         with self._arrived:
-            if self._answered < self._asked and not exact:
+            if self.dead or (self._answered < self._asked and not exact):
                 return
             self._asked += 1
             asked = self._asked
@@ -434,7 +488,7 @@ class _GlobalSolver:
     def receive(self, wait: float) -> tuple[np.ndarray, dict[int, np.ndarray]] | None:
         """The newest estimate not taken yet (waiting up to ``wait`` s for the last request's), or None."""
         with self._arrived:
-            self._arrived.wait_for(lambda: self._answered >= self._asked, timeout=wait)
+            self._arrived.wait_for(lambda: self._answered >= self._asked or self.dead, timeout=wait)
             newest, self._newest = self._newest, None
         return newest
 
@@ -492,11 +546,10 @@ def _apply(graph: PoseGraph, batch: list[tuple], index: dict[int, int]) -> None:
     try:
         result = graph._update(factors, poses, landmarks, remove)
     except SolverError as exc:
-        if len(batch) > 1:
-            for one in batch:
-                _apply(graph, [one], index)
-        else:
-            log.error("the whole graph rejected an update the window took: %s", exc)
+        if len(batch) == 1:  # out of step with the parent from here on: exit, to be restarted with a replay
+            raise SystemExit(f"the whole graph rejected an update the window took: {exc}") from exc
+        for one in batch:
+            _apply(graph, [one], index)
         return
     new = iter(int(i) for i in result.getNewFactorsIndices())
     for fs, _, _, _, first in batch:

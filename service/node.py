@@ -332,6 +332,7 @@ class ServiceNode:
                   "landmark_measurements": len(p.landmarks.assigned) if p.landmarks is not None else 0,
                   "object_reposes": p.reposes, "object_mapping_errors": p.mapping_errors,
                   "loop_closures": {"accepted": accepted, "rejected": len(records) - accepted},
+                  "graph_window": {"first_keyframe": graph.start, "whole_graph_solves": graph.global_solves},
                   "keyframe_detections_by_class": dict(p.detections_by_class), "objects": len(objects),
                   "objects_by_class": dict(Counter(o["label"] for o in objects))}
         summary = MapSummary(counts, objects, p.object_map_version, loops, key, objects_key)

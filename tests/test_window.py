@@ -10,15 +10,20 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import X
 
+from graph.factors import FactorRecord
 from graph.geometry import relative
 from graph.metrics import trajectory_error
 from graph.pose_graph import NoiseSettings, PoseGraph
 from graph.window import WindowedGraph, WindowSettings
 from service.bench import isam2 as sim
 from service.config import load_settings
+from service.node import ServiceNode
+from service.replay import frame_publisher
 from service.persistence import decode, encode, seal, unseal
 from service.pipeline import Pipeline
+from service.protocol import encode_frame
 from service.sources import open_dataset
+from service.zenoh_session import open_session
 
 
 def _explore(graph, n: int, seed: int = 0, landmarks: int = 40) -> list[np.ndarray]:
@@ -209,3 +214,72 @@ def test_a_service_snapshot_of_a_rolled_window_restores_the_trajectory_exactly()
             restored.close()
     finally:
         p.close()
+
+
+def test_status_shows_where_the_window_starts_and_the_whole_graph_solves():
+    """A service over an embedded zenoh session, frames published to it, status read from its summary."""
+    settings = load_settings(None, {"detector": {"enabled": False}, "robot": "wtest",
+                                    "graph": {"window_keyframes": 10, "window_step": 3}})
+    session = open_session(settings.zenoh, "server", embedded=True)
+    node = ServiceNode(settings, session)
+    try:
+        node.start()
+        assert node.status()["graph_window"] == {"first_keyframe": 0, "whole_graph_solves": 0}
+        pub = frame_publisher(session, f"{node.prefix}/rgbd")
+        data = open_dataset("synthetic:room?seed=0&frames=120&fps=10&width=320&height=240")
+        for i in range(len(data)):
+            pub.put(encode_frame(data.frame(i)))
+            assert node.wait_done(i + 1, timeout=60.0)
+        status = node.status()
+    finally:
+        node.stop()
+        session.close()
+    assert status["keyframes"] >= 20
+    assert status["keyframes"] - 13 <= status["graph_window"]["first_keyframe"] <= status["keyframes"] - 10
+    assert status["graph_window"]["whole_graph_solves"] >= 1
+
+
+def test_a_factor_to_a_fixed_keyframe_becomes_a_prior_with_the_same_error(windowed):
+    """Both directions, Huber kernel included: the prior's whitened error equals the between-factor's."""
+    rng = np.random.default_rng(11)
+    g = windowed(4, 1)
+    g.add_first(np.eye(4))
+    for _ in range(12):
+        g.add_keyframe(sim._noisy(np.eye(4), 0.1, 5.0, rng))
+    assert g.start >= 8
+    fixed, free = g.start - 2, g.start + 1
+    for a, b in ((fixed, free), (free, fixed)):
+        record = FactorRecord(a, b, sim._noisy(np.eye(4), 0.5, 30.0, rng), 0.02, 1.0, huber_k=3.0)
+        prior = g._localize(record, set())
+        assert prior.b == -1 and prior.a == free - g.start
+        for _ in range(5):
+            T_free = sim._noisy(np.eye(4), 1.0, 40.0, rng)
+            values = gtsam.Values()
+            values.insert(X(fixed), gtsam.Pose3(g.pose(fixed)))
+            values.insert(X(free), gtsam.Pose3(T_free))
+            local = gtsam.Values()
+            local.insert(X(free - g.start), gtsam.Pose3(T_free))
+            assert prior.to_gtsam().error(local) == pytest.approx(record.to_gtsam().error(values), rel=1e-9)
+
+
+def test_a_child_that_dies_is_restarted_with_the_whole_history(windowed):
+    true = []
+    for i in range(201):  # the 200-keyframe circle with drifting odometry
+        T = np.eye(4)
+        angle = 2 * np.pi * i / 200
+        T[:3, :3] = sim.Rotation.from_euler("z", angle).as_matrix()
+        T[:3, 3] = [5 * np.cos(angle), 5 * np.sin(angle), 0.0]
+        true.append(T)
+    drift = np.eye(4)
+    drift[:3, :3] = sim.Rotation.from_euler("z", 0.003).as_matrix()
+    g = windowed(40, 10)
+    g.add_first(true[0])
+    for k, (a, b) in enumerate(zip(true[:-1], true[1:]), start=1):
+        g.add_keyframe(relative(a, b) @ drift, 0.01, 0.5)
+        if k == 120:
+            first = g._global
+            first._process.kill()
+    g.add_loop(0, 200, relative(true[0], true[200]), 0.01, 0.5)
+    g.flush()
+    assert first.dead and g._global is not first and g._child_starts == 2
+    assert np.linalg.norm(g.pose(200)[:3, 3] - true[200][:3, 3]) < 0.05  # the new child solved the whole loop
