@@ -234,6 +234,7 @@ class Variant:
     window: WindowSettings | None
     returns: bool = True
     loops_and_landmarks: bool = True
+    repeats: int = 1  # runs of the same simulation; the table shows the one with the median growth ratio
 
     def params(self) -> str:
         n, w = self.noise, self.window
@@ -250,7 +251,7 @@ def variants() -> list[Variant]:
 
     settings = load_settings().graph
     noise, window = from_settings(NoiseSettings, settings), from_settings(WindowSettings, settings)
-    return [Variant("**service configuration**", noise, window),
+    return [Variant("**service configuration**", noise, window, repeats=5),
             Variant("whole graph in one iSAM2 (before the window)", noise, None),
             Variant("service, no returns to earlier rooms", noise, window, returns=False),
             Variant("service, odometry chain only", noise, window, loops_and_landmarks=False)]
@@ -261,14 +262,20 @@ def run_isam2_bench(console: Console, poses: int, landmarks: int, seed: int, wri
     small, large = min(1000, poses // 10), poses
     results = []
     for v in variants():
-        load_before = os.getloadavg()[0]
-        r = simulate(poses, landmarks, v.noise, v.window, seed, v.returns, v.loops_and_landmarks)
-        r.update(variant=v.name, params=v.params(), load=(load_before + os.getloadavg()[0]) / 2,
-                 ratio=growth(r["keyframe_s"], poses, small, large),
-                 ratio_updates=growth(r["update_s"], poses, small, large),
-                 p95_ms=float(np.percentile(r["update_s"] * 1e3, 95)))
+        runs = []
+        for _ in range(v.repeats):
+            load_before = os.getloadavg()[0]
+            r = simulate(poses, landmarks, v.noise, v.window, seed, v.returns, v.loops_and_landmarks)
+            r.update(variant=v.name, params=v.params(), load=(load_before + os.getloadavg()[0]) / 2,
+                     ratio=growth(r["keyframe_s"], poses, small, large),
+                     ratio_updates=growth(r["update_s"], poses, small, large),
+                     p95_ms=float(np.percentile(r["update_s"] * 1e3, 95)))
+            runs.append(r)
+            console.print(f"{v.name}: update p95 {r['p95_ms']:.2f} ms, t({large})/t({small}) {r['ratio']:.2f}")
+        runs.sort(key=lambda r: r["ratio"])
+        r = runs[len(runs) // 2]  # the run with the median ratio
+        r["ratios"] = [x["ratio"] for x in runs]
         results.append(r)
-        console.print(f"{v.name}: update p95 {r['p95_ms']:.2f} ms, t({large})/t({small}) {r['ratio']:.2f}")
     header = ["metric", *(r["variant"] for r in results), "target"]
     metrics = [
         ("iSAM2 parameters", lambda r: r["params"], ""),
@@ -280,8 +287,9 @@ def run_isam2_bench(console: Console, poses: int, landmarks: int, seed: int, wri
         (f"mean per keyframe around {small} / {large} poses (ms)",
          lambda r: f"{window_mean(r['keyframe_s'], small) * 1e3:.2f} / {window_mean(r['keyframe_s'], large) * 1e3:.2f}",
          ""),
-        (f"**t({large}) / t({small}), per keyframe**", lambda r: f"{r['ratio']:.2f}",
-         f"<= {RATIO_TARGET:g}"),
+        (f"**t({large}) / t({small}), per keyframe**", lambda r: f"{r['ratio']:.2f}" + (
+            f" (median of {len(r['ratios'])} runs: {', '.join(f'{x:.2f}' for x in r['ratios'])})"
+            if len(r["ratios"]) > 1 else ""), f"<= {RATIO_TARGET:g}"),
         (f"t({large}) / t({small}), per update", lambda r: f"{r['ratio_updates']:.2f}", ""),
         ("pose ATE vs the simulated truth, after the final whole-graph solve (cm)",
          lambda r: f"{r['ate_m'] * 100:.1f}", ""),
@@ -310,7 +318,9 @@ def run_isam2_bench(console: Console, poses: int, landmarks: int, seed: int, wri
              "included); per keyframe = "
              "all of a keyframe's graph calls (odometry, observations, loop closure and its convergence updates, "
              "estimate of the newest pose after each update, a roll); t(N) = mean over the 200 keyframes around N "
-             "(the last 200 at the end of the run), per update the same window in update order. CHOLESKY "
+             "(the last 200 at the end of the run), per update the same window in update order; the service "
+             "configuration is run 5 times (the same simulation: the spread is the machine's timing noise) and the "
+             "column shows the run with the median ratio. CHOLESKY "
              "factorization and cached linearized factors throughout (QR and no cache measured no better). Load = "
              "1-minute load average on the 2 shared cores during the variant."
              + load_note(max(r["load"] for r in results)))
