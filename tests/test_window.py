@@ -111,8 +111,8 @@ def test_a_rolled_window_ends_where_the_whole_graph_does(windowed):
         assert np.linalg.norm(window.landmark(j) - p) < 0.05
 
 
-def test_a_loop_to_a_fixed_keyframe_pulls_the_window_at_once_and_can_be_retracted(windowed):
-    """A 200-keyframe circle with drifting odometry; the window holds the last 40-50 keyframes."""
+def _circle() -> tuple[list[np.ndarray], np.ndarray]:
+    """True poses of a 200-keyframe circle of radius 5 m back to its start, and an odometry drift per keyframe."""
     true = []
     for i in range(201):
         T = np.eye(4)
@@ -122,6 +122,12 @@ def test_a_loop_to_a_fixed_keyframe_pulls_the_window_at_once_and_can_be_retracte
         true.append(T)
     drift = np.eye(4)
     drift[:3, :3] = sim.Rotation.from_euler("z", 0.003).as_matrix()
+    return true, drift
+
+
+def test_a_loop_to_a_fixed_keyframe_pulls_the_window_at_once_and_can_be_retracted(windowed):
+    """A 200-keyframe circle with drifting odometry; the window holds the last 40-50 keyframes."""
+    true, drift = _circle()
     g = windowed(40, 10)
     g.add_first(true[0])
     for a, b in zip(true[:-1], true[1:]):
@@ -263,15 +269,7 @@ def test_a_factor_to_a_fixed_keyframe_becomes_a_prior_with_the_same_error(window
 
 
 def test_a_child_that_dies_is_restarted_with_the_whole_history(windowed):
-    true = []
-    for i in range(201):  # the 200-keyframe circle with drifting odometry
-        T = np.eye(4)
-        angle = 2 * np.pi * i / 200
-        T[:3, :3] = sim.Rotation.from_euler("z", angle).as_matrix()
-        T[:3, 3] = [5 * np.cos(angle), 5 * np.sin(angle), 0.0]
-        true.append(T)
-    drift = np.eye(4)
-    drift[:3, :3] = sim.Rotation.from_euler("z", 0.003).as_matrix()
+    true, drift = _circle()
     g = windowed(40, 10)
     g.add_first(true[0])
     for k, (a, b) in enumerate(zip(true[:-1], true[1:]), start=1):
