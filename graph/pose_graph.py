@@ -112,12 +112,17 @@ class PoseGraph(Keyframes, Landmarks):
     def optimum(self) -> tuple[np.ndarray, dict[int, np.ndarray]]:
         """Keyframe poses and landmark positions at the batch Levenberg-Marquardt optimum of the live factors,
         started from the iSAM2 estimate (which stops short of it: a variable is relinearized only once its
-        update exceeds ``relinearize_threshold``). The graph itself is left as it is."""
+        update exceeds ``relinearize_threshold``). The graph itself is left as it is. Should the batch problem
+        fail (gtsam throws, e.g. an indeterminant system), iSAM2's estimate is returned, with a warning."""
         factors = gtsam.NonlinearFactorGraph()
         for i, f in enumerate(self.factors):
             if i not in self._removed:
                 factors.add(f.to_gtsam())
-        values = gtsam.LevenbergMarquardtOptimizer(factors, self._current()).optimize()
+        try:
+            values = gtsam.LevenbergMarquardtOptimizer(factors, self._current()).optimize()
+        except RuntimeError as exc:
+            log.warning("the batch optimisation failed, keeping iSAM2's estimate: %s", exc)
+            return self.poses(), self.landmarks()
         rows = gtsam.utilities.extractPose3(values)
         poses = np.tile(np.eye(4), (len(rows), 1, 1))
         poses[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
