@@ -19,13 +19,15 @@ How (the foreground, ``WindowedGraph``):
   fixed measurements as priors.
 - **The whole graph** gets every factor as plain records, in a child process (``python -m graph.window``:
   nothing shared with the parent) running a full ``PoseGraph``. It is asked to solve at each roll (one solve
-  outstanding at a time). The newest estimate that has come back replaces the fixed past
-  at the next roll, which rebuilds the window there (keyframes added since the solve moved rigidly with the
-  newest solved one); so the window is rebuilt once per ``window_step`` keyframes, whatever the loops.
+  outstanding at a time). The newest estimate that has come back replaces the fixed past at the next roll,
+  which rebuilds the window there (keyframes added since the solve moved rigidly with the newest solved one);
+  so the window is rebuilt once per ``window_step`` keyframes, whatever the loops. A child that dies is
+  restarted and replays the whole history.
+- **Flush** (the end of a run) waits for the whole graph's batch optimum and re-anchors the window there.
 
 Per-keyframe work is bounded by the window, not by the map; a loop closure's correction of the whole map
 arrives a solve later. Until the first roll the child is never started and the window is the whole graph,
-update for update what ``PoseGraph`` does (same factor indices, same estimate).
+update for update what ``PoseGraph`` does (same factor indices, same estimate), until a flush.
 """
 
 from __future__ import annotations
