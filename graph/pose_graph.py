@@ -95,10 +95,13 @@ class PoseGraph(Keyframes, Landmarks):
         """All keyframe estimates, (K, 4, 4), cached until the next update."""
         if not self.num_keyframes:
             return np.zeros((0, 4, 4))
-        estimate = self._current()
-        rows = gtsam.utilities.extractPose3(estimate)  # (K, 12): rotation row-major, translation; in key order
+        return self._keyframe_poses(self._current())
+
+    def _keyframe_poses(self, values: gtsam.Values) -> np.ndarray:
+        """The keyframe poses in ``values``, (K, 4, 4) in keyframe order."""
+        rows = gtsam.utilities.extractPose3(values)  # (K, 12): rotation row-major, translation; in key order
         if len(rows) != self.num_keyframes:  # never expected (the keyframes are the only Pose3 values)
-            return np.stack([estimate.atPose3(X(k)).matrix() for k in range(self.num_keyframes)])
+            return np.stack([values.atPose3(X(k)).matrix() for k in range(self.num_keyframes)])
         out = np.zeros((len(rows), 4, 4))
         out[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
         out[:, :3, 3] = rows[:, 9:]
@@ -123,11 +126,7 @@ class PoseGraph(Keyframes, Landmarks):
         except RuntimeError as exc:
             log.warning("the batch optimisation failed, keeping iSAM2's estimate: %s", exc)
             return self.poses(), self.landmarks()
-        rows = gtsam.utilities.extractPose3(values)
-        poses = np.tile(np.eye(4), (len(rows), 1, 1))
-        poses[:, :3, :3] = rows[:, :9].reshape(-1, 3, 3)
-        poses[:, :3, 3] = rows[:, 9:]
-        return poses, {j: np.asarray(values.atPoint3(L(j))) for j in self._landmarks}
+        return self._keyframe_poses(values), {j: np.asarray(values.atPoint3(L(j))) for j in self._landmarks}
 
     def _current(self) -> gtsam.Values:
         if self._estimate is None:

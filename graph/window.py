@@ -49,7 +49,7 @@ import gtsam
 import numpy as np
 
 from graph.errors import SolverError
-from graph.factors import LANDMARK, FactorRecord, from_columns
+from graph.factors import LANDMARK, FactorRecord, from_columns, pose_noise
 from graph.keyframes import Keyframes
 from graph.landmarks import Landmarks
 from graph.pose_graph import NoiseSettings, PoseGraph
@@ -187,8 +187,7 @@ class WindowedGraph(Keyframes, Landmarks):
             del self._frozen[j]
 
     def _drop_unconstrained(self, removed: list[int]) -> None:
-        touched = {j for i in removed for _, j in _ends(self.factors[i]) if j is not None}
-        for j in touched & self._landmarks.keys():
+        for j in self._touched([self.factors[i] for i in removed]) & self._landmarks.keys():
             if all(i in self._removed for i in self._by_landmark.get(j, [])):
                 del self._landmarks[j]
                 self._pending[j] = []
@@ -218,8 +217,7 @@ class WindowedGraph(Keyframes, Landmarks):
             return replace(f, a=f.b - s, b=-1, measurement=fixed[f.a] @ f.measurement)
         if f.a >= s:  # the prior's error is -Ad(T_ab) times the between-factor's: its covariance transformed so
             adjoint = gtsam.Pose3(f.measurement).AdjointMap()
-            sigmas = np.r_[np.full(3, np.deg2rad(f.sigma_deg)), np.full(3, f.sigma_m)]
-            covariance = f.covariance if f.covariance is not None else np.diag(sigmas ** 2)
+            covariance = f.covariance if f.covariance is not None else pose_noise(f.sigma_m, f.sigma_deg).covariance()
             return replace(f, b=-1, a=f.a - s, measurement=fixed[f.b] @ np.linalg.inv(f.measurement),
                            covariance=adjoint @ covariance @ adjoint.T)
         return None
