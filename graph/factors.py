@@ -21,10 +21,19 @@ def pose_noise(sigma_m: float, sigma_deg: float) -> gtsam.noiseModel.Diagonal:
     return gtsam.noiseModel.Diagonal.Sigmas(np.array([r, r, r, sigma_m, sigma_m, sigma_m]))
 
 
-def position_noise(p_cam: np.ndarray, sigma_m: float) -> gtsam.noiseModel.Diagonal:
-    """An isotropic camera-frame position sigma as (bearing, bearing, range) sigmas: sigma / range rad, sigma m."""
+def position_noise(p_cam: np.ndarray, sigma_m: float, range_sigma_m: float | None = None) -> gtsam.noiseModel.Diagonal:
+    """A camera-frame position sigma as (bearing, bearing, range) sigmas: ``sigma_m`` across the ray (as
+    sigma / range rad) and ``range_sigma_m`` along it (``sigma_m`` when None: isotropic)."""
     r = float(np.linalg.norm(p_cam))
-    return gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_m / r, sigma_m / r, sigma_m]))
+    along = sigma_m if range_sigma_m is None else range_sigma_m
+    return gtsam.noiseModel.Diagonal.Sigmas(np.array([sigma_m / r, sigma_m / r, along]))
+
+
+def position_covariance(p_cam: np.ndarray, sigma_m: float, range_sigma_m: float | None = None) -> np.ndarray:
+    """The 3x3 camera-frame covariance of ``position_noise``: ``sigma_m`` across the ray, ``range_sigma_m`` along."""
+    u = np.asarray(p_cam, float).reshape(3) / np.linalg.norm(p_cam)
+    along = sigma_m if range_sigma_m is None else range_sigma_m
+    return sigma_m**2 * np.eye(3) + (along**2 - sigma_m**2) * np.outer(u, u)
 
 
 @dataclass(frozen=True)
@@ -34,9 +43,11 @@ class FactorRecord:
     ``kind`` POSE: a prior on keyframe ``a`` (``b`` = -1, ``measurement`` the 4x4 pose) or a between-factor
     a -> b (``measurement`` = T_a_b). ``kind`` LANDMARK: a prior on landmark ``a`` (``b`` = -1, ``measurement``
     the world position) or the position of landmark ``b`` measured in keyframe ``a``'s camera frame
-    (``measurement`` a 3-vector; a bearing-range factor with equivalent noise). ``huber_k`` set means a Huber
-    robust kernel; ``sigma_deg`` is unused by landmark factors. A pose factor with ``covariance`` uses it instead
-    of the sigmas (a between-factor turned into a prior on its first keyframe, ``graph.window``).
+    (``measurement`` a 3-vector; a bearing-range factor with equivalent noise: ``sigma_m`` across the viewing
+    ray, ``range_sigma_m`` along it when set). ``huber_k`` set means a Huber robust kernel; ``sigma_deg`` is
+    unused by landmark factors. A factor with ``covariance`` uses it instead of the sigmas: 6x6 on a pose (a
+    between-factor turned into a prior on its first keyframe, ``graph.window``), 3x3 on a landmark prior (a
+    measurement from a fixed keyframe turned into a world prior).
     """
 
     a: int
@@ -46,16 +57,18 @@ class FactorRecord:
     sigma_deg: float
     huber_k: float | None = None
     kind: int = POSE
-    covariance: np.ndarray | None = None  # a full 6x6 (rotation, translation) covariance instead of the sigmas
+    covariance: np.ndarray | None = None  # a full 6x6 (rotation, translation) or 3x3 covariance instead of sigmas
+    range_sigma_m: float | None = None  # a landmark measurement's sigma along the viewing ray
 
     def to_gtsam(self) -> gtsam.NonlinearFactor:
         m = self.measurement
         if self.kind == LANDMARK:
             if self.b < 0:
-                noise = gtsam.noiseModel.Isotropic.Sigma(3, self.sigma_m)
+                noise = gtsam.noiseModel.Isotropic.Sigma(3, self.sigma_m) if self.covariance is None \
+                    else gtsam.noiseModel.Gaussian.Covariance(np.asarray(self.covariance, float))
                 return gtsam.PriorFactorPoint3(L(self.a), m, self._robust(noise))
             return gtsam.BearingRangeFactor3D(X(self.a), L(self.b), gtsam.Unit3(m), float(np.linalg.norm(m)),
-                                              self._robust(position_noise(m, self.sigma_m)))
+                                              self._robust(position_noise(m, self.sigma_m, self.range_sigma_m)))
         noise = self._robust(pose_noise(self.sigma_m, self.sigma_deg) if self.covariance is None
                              else gtsam.noiseModel.Gaussian.Covariance(np.asarray(self.covariance, float)))
         if self.b < 0:
@@ -69,7 +82,8 @@ class FactorRecord:
 
 
 def to_columns(records: list[FactorRecord]) -> dict[str, np.ndarray]:
-    """Records as arrays (one row per factor); a landmark factor's 3-vector sits in the 4x4's translation."""
+    """Records as arrays (one row per factor); a landmark factor's 3-vector sits in the 4x4's translation, and
+    a landmark prior's 3x3 covariance in the 6x6's top-left block."""
     measurement = np.tile(np.eye(4), (len(records), 1, 1))
     for i, r in enumerate(records):
         if r.kind == LANDMARK:
@@ -81,15 +95,30 @@ def to_columns(records: list[FactorRecord]) -> dict[str, np.ndarray]:
             "sigma_deg": np.array([r.sigma_deg for r in records], float),
             "huber_k": np.array([np.nan if r.huber_k is None else r.huber_k for r in records], float),
             "kind": np.array([r.kind for r in records], np.int64),
-            "covariance": np.array([np.full((6, 6), np.nan) if r.covariance is None else r.covariance
-                                    for r in records], float).reshape(-1, 6, 6)}
+            "covariance": np.array([_covariance_column(r.covariance) for r in records], float).reshape(-1, 6, 6),
+            "range_sigma_m": np.array([np.nan if r.range_sigma_m is None else r.range_sigma_m for r in records],
+                                      float)}
+
+
+def _covariance_column(covariance: np.ndarray | None) -> np.ndarray:
+    if covariance is None:
+        return np.full((6, 6), np.nan)
+    out = np.eye(6)
+    n = len(covariance)
+    out[:n, :n] = covariance
+    return out
 
 
 def from_columns(c: dict[str, Any]) -> list[FactorRecord]:
-    """The records of ``to_columns`` (columns without ``kind``, from before landmarks, are all POSE)."""
-    kinds = c.get("kind", np.zeros(len(c["a"]), np.int64))
-    covariances = c.get("covariance", np.full((len(c["a"]), 6, 6), np.nan))
+    """The records of ``to_columns`` (columns without ``kind``, from before landmarks, are all POSE; without
+    ``covariance`` or ``range_sigma_m``, from older snapshots, none has one)."""
+    n = len(c["a"])
+    kinds = c.get("kind", np.zeros(n, np.int64))
+    covariances = c.get("covariance", np.full((n, 6, 6), np.nan))
+    ranges = c.get("range_sigma_m", np.full(n, np.nan))
     return [FactorRecord(int(a), int(b), m[:3, 3].copy() if kind == LANDMARK else m, float(sm), float(sd),
-                         None if np.isnan(k) else float(k), int(kind), None if np.isnan(cov).any() else cov)
-            for a, b, m, sm, sd, k, kind, cov in zip(c["a"], c["b"], c["measurement"], c["sigma_m"], c["sigma_deg"],
-                                                     c["huber_k"], kinds, covariances)]
+                         None if np.isnan(k) else float(k), int(kind),
+                         None if np.isnan(cov).any() else (cov[:3, :3].copy() if kind == LANDMARK else cov),
+                         None if np.isnan(rs) else float(rs))
+            for a, b, m, sm, sd, k, kind, cov, rs in zip(c["a"], c["b"], c["measurement"], c["sigma_m"],
+                                                         c["sigma_deg"], c["huber_k"], kinds, covariances, ranges)]

@@ -58,14 +58,18 @@ class Landmarks:
         return self.add_landmark_measurements([(k, j, p) for j, p in observations], sigma_m, huber_k)
 
     def add_landmark_measurements(self, items: list[tuple[int, int, np.ndarray]], sigma_m: float | list[float],
-                                  huber_k: float | None = None) -> list[int | None]:
+                                  huber_k: float | None = None,
+                                  range_sigma_m: float | list[float] | None = None) -> list[int | None]:
         """Landmark measurements ``(k, j, p_cam)`` from any keyframes, in one iSAM2 update (see above).
 
-        ``sigma_m``: one sigma for all, or one per measurement.
+        ``sigma_m``: one sigma for all, or one per measurement; ``range_sigma_m`` likewise, the sigma along the
+        viewing ray (None: ``sigma_m``, isotropic).
         """
         sigmas = np.broadcast_to(np.asarray(sigma_m, float), (len(items),))
+        ranges = [None] * len(items) if range_sigma_m is None else \
+            np.broadcast_to(np.asarray(range_sigma_m, float), (len(items),)).tolist()
         records = []
-        for (k, j, p_cam), sigma in zip(items, sigmas):
+        for (k, j, p_cam), sigma, along in zip(items, sigmas, ranges):
             if not 0 <= k < self.num_keyframes:
                 raise ValueError(f"keyframe {k} is not in the graph")
             if j not in self._landmarks and j not in self._pending:
@@ -73,7 +77,7 @@ class Landmarks:
             p = np.array(p_cam, float).reshape(3)
             if not np.all(np.isfinite(p)) or np.linalg.norm(p) < 1e-3:
                 raise ValueError(f"unusable landmark measurement {p}")
-            records.append(FactorRecord(k, j, p, float(sigma), 0.0, huber_k, LANDMARK))
+            records.append(FactorRecord(k, j, p, float(sigma), 0.0, huber_k, LANDMARK, range_sigma_m=along))
         factors, landmarks, waiting, first = [], [], {}, 0
         for r in records:
             if r.b in self._landmarks:

@@ -41,6 +41,10 @@ class LandmarkConfig:
     landmark_extent_scale: float = 1.0
     """A measurement's sigma is at least this times the largest std of its points: the visible surface's
     centroid of a large object moves with the viewpoint by about its extent."""
+    landmark_range_scale: float = 3.0
+    """The sigma along the viewing ray is this times the sigma across it. The centroid of the visible surface
+    lies between the camera and the object's centre, by up to the object's depth: with a tight range every
+    view pulls the camera towards the object, which shrinks the map around its objects."""
 
 
 class ObjectLandmarks:
@@ -98,7 +102,8 @@ class ObjectLandmarks:
         try:
             m = [self.measurements[key] for key, _ in items]
             indices = self.graph.add_landmark_measurements(
-                [(k, j, x[:3]) for ((k, _), j), x in zip(items, m)], [x[3] for x in m], self.config.landmark_huber_k)
+                [(k, j, x[:3]) for ((k, _), j), x in zip(items, m)], [x[3] for x in m], self.config.landmark_huber_k,
+                [self.config.landmark_range_scale * x[3] for x in m])
         except SolverError as exc:
             self.failures += 1
             log.error("object landmark measurements rejected by the solver (%d items): %s", len(items), exc)

@@ -11,8 +11,8 @@ How (the foreground, ``WindowedGraph``):
   a unary factor on the window side, conditioning on the fixed past: a between-factor a -> b with ``a`` fixed
   is a prior ``T_a @ T_ab`` on ``b`` with the same noise and kernel, with ``b`` fixed a prior ``T_b @ T_ab^-1``
   on ``a`` whose covariance is carried through ``Ad(T_ab)`` (both exact); a landmark measured from a fixed
-  keyframe is a world-position prior on the landmark with the measurement's sigma (isotropic: to first order
-  the bearing-range factor's).
+  keyframe is a world-position prior on the landmark with the measurement's covariance rotated into the world
+  (to first order the bearing-range factor's: isotropic, or wider along the viewing ray).
 - **Rolling**: when the window holds ``window_keyframes + window_step`` keyframes its oldest ``window_step``
   become fixed and the window is rebuilt from the factor records in one batch update. A landmark no window
   keyframe observes leaves the window at its estimate ("frozen"); a factor on it brings it back with its
@@ -49,7 +49,7 @@ import gtsam
 import numpy as np
 
 from graph.errors import SolverError
-from graph.factors import LANDMARK, FactorRecord, from_columns, pose_noise
+from graph.factors import LANDMARK, FactorRecord, from_columns, pose_noise, position_covariance
 from graph.keyframes import Keyframes
 from graph.landmarks import Landmarks
 from graph.pose_graph import NoiseSettings, PoseGraph
@@ -208,7 +208,10 @@ class WindowedGraph(Keyframes, Landmarks):
             if f.a >= s:
                 return replace(f, a=f.a - s)
             T = fixed[f.a]
-            return FactorRecord(f.b, -1, T[:3, :3] @ f.measurement + T[:3, 3], f.sigma_m, 0.0, f.huber_k, LANDMARK)
+            R = T[:3, :3]
+            covariance = None if f.range_sigma_m is None else \
+                R @ position_covariance(f.measurement, f.sigma_m, f.range_sigma_m) @ R.T
+            return FactorRecord(f.b, -1, R @ f.measurement + T[:3, 3], f.sigma_m, 0.0, f.huber_k, LANDMARK, covariance)
         if f.b < 0:
             return replace(f, a=f.a - s) if f.a >= s else None
         if f.a >= s and f.b >= s:

@@ -116,6 +116,8 @@ class ObjectSettings(BaseModel):
     landmark_min_support: int = Field(5, ge=1, description="feature vectors an object needs to become a landmark")
     landmark_extent_scale: float = Field(1.0, ge=0, description="a measurement's sigma is at least this times "
                                                                 "the largest std of the object's points")
+    landmark_range_scale: float = Field(3.0, ge=1, description="sigma along the viewing ray = this times the sigma "
+                                        "across it: the visible surface's centroid lies short of the object's")
     repose_m: float = Field(0.01, gt=0, description="re-pose and re-cluster objects once an optimisation has "
                                                     "moved an observing keyframe this far (m)")
     repose_deg: float = Field(0.5, gt=0, description="... or turned it this much (degrees)")

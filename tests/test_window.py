@@ -268,6 +268,37 @@ def test_a_factor_to_a_fixed_keyframe_becomes_a_prior_with_the_same_error(window
             assert prior.to_gtsam().error(local) == pytest.approx(record.to_gtsam().error(values), rel=1e-9)
 
 
+def test_a_landmark_measured_from_a_fixed_keyframe_becomes_a_world_prior_with_the_same_error(windowed):
+    """Wider along the viewing ray than across it: the world prior's covariance is the measurement's, rotated."""
+    from gtsam.symbol_shorthand import L
+
+    from graph.factors import LANDMARK
+
+    rng = np.random.default_rng(12)
+    g = windowed(4, 1)
+    g.add_first(np.eye(4))
+    for _ in range(12):
+        g.add_keyframe(sim._noisy(np.eye(4), 0.1, 30.0, rng))
+    fixed = g.start - 2
+    record = FactorRecord(fixed, 3, np.array([0.4, -0.2, 2.0]), 0.1, 0.0, None, LANDMARK, range_sigma_m=0.3)
+    prior = g._localize(record, {3})
+    assert prior.b == -1 and prior.a == 3 and prior.covariance.shape == (3, 3)
+    T = g.pose(fixed)
+    landmark = T[:3, :3] @ record.measurement + T[:3, 3]
+    errors = {}
+    for name, ray in (("along", T[:3, :3] @ record.measurement / np.linalg.norm(record.measurement)),
+                      ("across", T[:3, :3] @ np.array([1.0, 0.0, -0.2]) / np.linalg.norm([1.0, 0.0, -0.2]))):
+        moved = landmark + 0.002 * ray
+        values = gtsam.Values()
+        values.insert(X(fixed), gtsam.Pose3(T))
+        values.insert(L(3), moved)
+        local = gtsam.Values()
+        local.insert(L(3), moved)
+        errors[name] = prior.to_gtsam().error(local)
+        assert errors[name] == pytest.approx(record.to_gtsam().error(values), rel=1e-3)
+    assert errors["across"] == pytest.approx(9 * errors["along"], rel=0.05)  # sigma 0.1 across, 0.3 along
+
+
 def test_a_child_that_dies_is_restarted_with_the_whole_history(windowed):
     true, drift = _circle()
     g = windowed(40, 10)
