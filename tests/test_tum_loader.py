@@ -62,6 +62,26 @@ def test_tum_directory_with_extensions_loads_frames_odometry_and_detections(tmp_
     assert ds.ground_truth is None
 
 
+def test_views_drop_the_odometry_or_replace_it_with_the_ground_truth(tmp_path):
+    from service.sources import TruthAsOdometry, WithoutOdometry
+
+    _write_tum(tmp_path)
+    with pytest.raises(DatasetError, match="no ground truth"):
+        TruthAsOdometry(open_dataset(str(tmp_path)))
+    (tmp_path / "groundtruth.txt").write_text("".join(f"{100.0 + i * 0.033:.6f} 0 {0.5 * i} 0 0 0 0 1\n"
+                                                      for i in range(4)))
+    with pytest.raises(DatasetError, match="1 frames have no ground-truth pose"):
+        TruthAsOdometry(open_dataset(str(tmp_path)))
+    (tmp_path / "groundtruth.txt").write_text("".join(f"{100.0 + i * 0.033:.6f} 0 {0.5 * i} 0 0 0 0 1\n"
+                                                      for i in range(5)))
+    ds = open_dataset(str(tmp_path))
+    truth, without = TruthAsOdometry(ds), WithoutOdometry(ds)
+    assert truth.has_odometry and not without.has_odometry and len(truth) == len(without) == 5
+    np.testing.assert_allclose(truth.frame(3).odometry[:3, 3], [0, 1.5, 0])
+    assert without.frame(3).odometry is None and without.frame(3).detections[0].label == "cup"
+    assert np.array_equal(truth.ground_truth.poses, ds.ground_truth.poses)
+
+
 def test_without_camera_json_tum_defaults_and_flags_apply(tmp_path):
     _write_tum(tmp_path, camera=False, odometry=False, detections=False)
     ds = open_dataset(str(tmp_path))

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from service.sources.base import Dataset, DatasetError, ObjectTruth, Trajectory, WithoutOdometry
+from service.sources.base import Dataset, DatasetError, ObjectTruth, Trajectory, TruthAsOdometry, WithoutOdometry
 
-__all__ = ["Dataset", "DatasetError", "ObjectTruth", "Trajectory", "WithoutOdometry", "open_dataset"]
+__all__ = ["Dataset", "DatasetError", "ObjectTruth", "Trajectory", "TruthAsOdometry", "WithoutOdometry", "open_dataset"]
 
 
 def open_dataset(spec: str, camera_overrides: dict[str, float] | None = None,

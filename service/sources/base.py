@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from graph.metrics import nearest_timestamps
 from perception.frame import CameraModel, Frame
 
 
@@ -85,8 +86,8 @@ class Dataset(ABC):
         return None
 
 
-class WithoutOdometry(Dataset):
-    """A view of a dataset whose frames carry no odometry, so the service runs its own front end."""
+class DatasetView(Dataset):
+    """Another dataset, passed through: the base of views that change what its frames carry."""
 
     def __init__(self, inner: Dataset):
         self.inner = inner
@@ -96,10 +97,8 @@ class WithoutOdometry(Dataset):
     def __len__(self) -> int:
         return len(self.inner)
 
-    def frame(self, index: int):
-        f = self.inner.frame(index)
-        f.odometry = None
-        return f
+    def frame(self, index: int) -> Frame:
+        return self.inner.frame(index)
 
     @property
     def timestamps(self) -> np.ndarray:
@@ -119,3 +118,36 @@ class WithoutOdometry(Dataset):
 
     def instance_mask(self, index: int) -> np.ndarray | None:
         return self.inner.instance_mask(index)
+
+
+class WithoutOdometry(DatasetView):
+    """A view of a dataset whose frames carry no odometry, so the service runs its own front end."""
+
+    def frame(self, index: int) -> Frame:
+        f = self.inner.frame(index)
+        f.odometry = None
+        return f
+
+
+class TruthAsOdometry(DatasetView):
+    """A view whose frames carry the ground-truth pose as their odometry (a benchmark diagnostic: what the
+    graph's loops and landmarks do to a perfect trajectory). Every frame needs a ground-truth pose."""
+
+    def __init__(self, inner: Dataset):
+        super().__init__(inner)
+        truth = inner.ground_truth
+        if truth is None:
+            raise DatasetError(f"{inner.name}: no ground truth to use as odometry")
+        match = nearest_timestamps(inner.timestamps, truth.timestamps, 0.01)
+        if (match < 0).any():
+            raise DatasetError(f"{inner.name}: {int((match < 0).sum())} frames have no ground-truth pose")
+        self._poses = truth.poses[match]
+
+    @property
+    def has_odometry(self) -> bool:
+        return True
+
+    def frame(self, index: int) -> Frame:
+        f = self.inner.frame(index)
+        f.odometry = self._poses[index].copy()
+        return f
