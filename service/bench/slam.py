@@ -4,7 +4,7 @@ Each dataset is run once through the service (embedded zenoh, frames without odo
 front end runs, appearance + proximity loop candidates). ``odometry.tum`` is the front end alone and
 ``trajectory.tum`` the graph with loops, so one run gives both ATE figures. A second run gives the frames
 the ground truth as their odometry: the ATE the graph's loops and object landmarks leave on a perfect
-trajectory, the floor that no front end goes below on that ground truth. Loop candidates are judged
+trajectory, roughly the floor for any front end on that ground truth. Loop candidates are judged
 against ground truth: true when the two frames' true poses are within 0.3 m and 20 degrees.
 """
 
@@ -140,7 +140,7 @@ def _record_odometry(console: Console, results: list[dict], write: Path | None) 
              "frame; RPE is between consecutive frames. Front-end rate is 1 / median per-frame front-end time. "
              "'Ground truth as odometry': a second run whose frames carry the ground-truth pose as external "
              "odometry (graph odometry sigmas), with the same loop closure and object landmarks: the error "
-             "the graph's other factors leave on a perfect trajectory, the floor for any front end.")
+             "the graph's other factors leave on a perfect trajectory, roughly the floor for any front end.")
     record("odometry", "RGB-D odometry: ATE with and without loop closures", "objslam bench odometry",
            markdown_table(header, rows), notes, write)
 
