@@ -8,9 +8,9 @@ from collections import defaultdict
 import gtsam
 import numpy as np
 import pytest
-from gtsam.symbol_shorthand import X
+from gtsam.symbol_shorthand import L, X
 
-from graph.factors import FactorRecord
+from graph.factors import LANDMARK, FactorRecord
 from graph.geometry import relative
 from graph.metrics import trajectory_error
 from graph.pose_graph import NoiseSettings, PoseGraph
@@ -245,14 +245,20 @@ def test_status_shows_where_the_window_starts_and_the_whole_graph_solves():
     assert status["graph_window"]["whole_graph_solves"] >= 1
 
 
-def test_a_factor_to_a_fixed_keyframe_becomes_a_prior_with_the_same_error(windowed):
-    """Both directions, Huber kernel included: the prior's whitened error equals the between-factor's."""
-    rng = np.random.default_rng(11)
+def _rolled(windowed, rng, turn_deg: float) -> WindowedGraph:
+    """A 4 + 1 keyframe window rolled along 13 keyframes of random small motions."""
     g = windowed(4, 1)
     g.add_first(np.eye(4))
     for _ in range(12):
-        g.add_keyframe(sim._noisy(np.eye(4), 0.1, 5.0, rng))
+        g.add_keyframe(sim._noisy(np.eye(4), 0.1, turn_deg, rng))
     assert g.start >= 8
+    return g
+
+
+def test_a_factor_to_a_fixed_keyframe_becomes_a_prior_with_the_same_error(windowed):
+    """Both directions, Huber kernel included: the prior's whitened error equals the between-factor's."""
+    rng = np.random.default_rng(11)
+    g = _rolled(windowed, rng, 5.0)
     fixed, free = g.start - 2, g.start + 1
     for a, b in ((fixed, free), (free, fixed)):
         record = FactorRecord(a, b, sim._noisy(np.eye(4), 0.5, 30.0, rng), 0.02, 1.0, huber_k=3.0)
@@ -270,15 +276,7 @@ def test_a_factor_to_a_fixed_keyframe_becomes_a_prior_with_the_same_error(window
 
 def test_a_landmark_measured_from_a_fixed_keyframe_becomes_a_world_prior_with_the_same_error(windowed):
     """Wider along the viewing ray than across it: the world prior's covariance is the measurement's, rotated."""
-    from gtsam.symbol_shorthand import L
-
-    from graph.factors import LANDMARK
-
-    rng = np.random.default_rng(12)
-    g = windowed(4, 1)
-    g.add_first(np.eye(4))
-    for _ in range(12):
-        g.add_keyframe(sim._noisy(np.eye(4), 0.1, 30.0, rng))
+    g = _rolled(windowed, np.random.default_rng(12), 30.0)
     fixed = g.start - 2
     record = FactorRecord(fixed, 3, np.array([0.4, -0.2, 2.0]), 0.1, 0.0, None, LANDMARK, range_sigma_m=0.3)
     prior = g._localize(record, {3})
