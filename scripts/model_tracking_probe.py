@@ -69,9 +69,8 @@ class SurfaceModelTracker:
 
     def depth(self, raw: np.ndarray) -> np.ndarray:
         """Raw depth units as float32, invalid (0 or 65535) as 0, subsampled by ``stride``."""
-        d = raw[::self.stride, ::self.stride].astype(np.float32)
-        d[(raw[::self.stride, ::self.stride] == 0) | (raw[::self.stride, ::self.stride] == 65535)] = 0
-        return np.ascontiguousarray(d)
+        sub = raw[::self.stride, ::self.stride]
+        return np.ascontiguousarray(np.where((sub == 0) | (sub == 65535), 0, sub).astype(np.float32))
 
     def correction(self, depth: np.ndarray, predicted: np.ndarray) -> np.ndarray | None:
         """``T_pred_cur`` aligning ``depth`` with the model seen from ``predicted``, or None if ICP fails."""

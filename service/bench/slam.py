@@ -55,6 +55,11 @@ def windows_found(loops: list[dict], windows: list) -> str:
     return f"{found} / {len(windows)}"
 
 
+def _settings(loops: dict[str, Any] | None = None, objects: dict[str, Any] | None = None):
+    """The benchmark's service settings: the appearance loop source unless ``loops`` says otherwise."""
+    return load_settings(None, {"loops": loops or {"source": "appearance"}, "objects": objects or {}})
+
+
 def run_one(spec: str, out: Path, loops: dict[str, Any] | None = None,
             objects: dict[str, Any] | None = None) -> dict[str, Any]:
     """One end-to-end run without provided odometry; returns the figures of both tables.
@@ -62,8 +67,7 @@ def run_one(spec: str, out: Path, loops: dict[str, Any] | None = None,
     ``loops`` overrides loop-closure settings (default: the appearance source), ``objects`` object settings.
     """
     dataset = WithoutOdometry(open_dataset(spec))
-    settings = load_settings(None, {"loops": loops or {"source": "appearance"}, "objects": objects or {}})
-    summary = run_dataset(dataset, out, settings, progress=False)
+    summary = run_dataset(dataset, out, _settings(loops, objects), progress=False)
     loops = json.loads((out / "loops.json").read_text())
     judged = [dict(r, true=is_true_loop(dataset, r["match_frame"], r["query_frame"]),
                    geo=geometry_error(dataset, r)) for r in loops]
@@ -94,8 +98,7 @@ def run_one(spec: str, out: Path, loops: dict[str, Any] | None = None,
 def truth_odometry_ate(spec: str, out: Path) -> float:
     """ATE (cm) of the graph when the frames carry the ground truth as odometry, with the same loop-closure and
     object settings as ``run_one``: how far loops and landmarks pull a perfect trajectory off the truth."""
-    settings = load_settings(None, {"loops": {"source": "appearance"}})
-    summary = run_dataset(TruthAsOdometry(open_dataset(spec)), out, settings, progress=False)
+    summary = run_dataset(TruthAsOdometry(open_dataset(spec)), out, _settings(), progress=False)
     return summary["ate"]["trajectory"]["ate_rmse_m"] * 100
 
 
