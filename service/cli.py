@@ -1,4 +1,4 @@
-"""The ``objslam`` command line: serve, replay, status, run, eval, config, bench."""
+"""The ``objslam`` command line: serve, replay, status, run, eval, config, calibrate, bench."""
 
 from __future__ import annotations
 
@@ -198,6 +198,37 @@ def config_cmd(dump: Annotated[bool, typer.Option("--dump", help="print the defa
         print(dump_defaults(), end="")
     else:
         print(yaml.safe_dump(load_settings(config).model_dump(mode="json"), sort_keys=False), end="")
+
+
+calibrate_app = typer.Typer(help="Sensor calibration against a dataset's reference trajectory.")
+app.add_typer(calibrate_app, name="calibrate")
+
+
+@calibrate_app.command("depth-scale")
+def calibrate_depth_scale_cmd(
+        dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?... with ground truth")],
+        start: Annotated[int, typer.Option("--start", help="first frame of the pairs")] = 0,
+        stop: Annotated[int | None, typer.Option("--stop", help="frames before this one (default: all)")] = None,
+        gap: Annotated[int, typer.Option("--gap", help="frames between the two of a pair")] = 15,
+        stride: Annotated[int, typer.Option("--stride", help="a pair every N frames")] = 3,
+        depth_scale: Annotated[float | None, typer.Option("--depth-scale", help="nominal units per metre")] = None,
+) -> None:
+    """The depth sensor's scale against the ground truth: depth ICP between frame pairs, started at the
+    reference motion, against that motion. Prints the calibrated depth units per metre (for --depth-scale or
+    camera.json's depth_scale)."""
+    from service.calibrate import calibrate_depth_scale
+    from service.sources import open_dataset
+
+    data = open_dataset(dataset, _camera_overrides(depth_scale=depth_scale))
+    try:
+        estimate = calibrate_depth_scale(data, start, stop, gap, stride)
+    except ValueError as exc:
+        raise UserError(f"{dataset}: {exc}") from None
+    nominal = data.camera.depth_scale
+    console.print(f"pairs {estimate.pairs} ({gap} frames apart); depth ICP / reference translation: median "
+                  f"{estimate.ratio:.4f}, quartiles {estimate.q25:.4f} .. {estimate.q75:.4f}")
+    console.print(f"depth units per metre: nominal {nominal:g}, calibrated "
+                  f"{estimate.calibrated_depth_scale(nominal):.1f}")
 
 
 bench_app = typer.Typer(help="Benchmarks: each prints a table and appends it to docs/benchmarks.md.")

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from service.sources.base import Dataset, DatasetError, ObjectTruth, Trajectory, TruthAsOdometry, WithoutOdometry
+from service.sources.base import (Dataset, DatasetError, ObjectTruth, ScaledDepth, Trajectory, TruthAsOdometry,
+                                  WithoutOdometry, truth_per_frame)
 
-__all__ = ["Dataset", "DatasetError", "ObjectTruth", "Trajectory", "TruthAsOdometry", "WithoutOdometry", "open_dataset"]
+__all__ = ["Dataset", "DatasetError", "ObjectTruth", "ScaledDepth", "Trajectory", "TruthAsOdometry", "WithoutOdometry",
+           "open_dataset", "truth_per_frame"]
 
 
 def open_dataset(spec: str, camera_overrides: dict[str, float] | None = None,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -86,6 +86,17 @@ class Dataset(ABC):
         return None
 
 
+def truth_per_frame(dataset: Dataset) -> np.ndarray:
+    """The ground-truth pose of every frame, (N, 4, 4); DatasetError when a frame has none."""
+    truth = dataset.ground_truth
+    if truth is None:
+        raise DatasetError(f"{dataset.name}: no ground truth")
+    match = nearest_timestamps(dataset.timestamps, truth.timestamps, 0.01)
+    if (match < 0).any():
+        raise DatasetError(f"{dataset.name}: {int((match < 0).sum())} frames have no ground-truth pose")
+    return truth.poses[match]
+
+
 class DatasetView(Dataset):
     """Another dataset, passed through: the base of views that change what its frames carry."""
 
@@ -135,13 +146,7 @@ class TruthAsOdometry(DatasetView):
 
     def __init__(self, inner: Dataset):
         super().__init__(inner)
-        truth = inner.ground_truth
-        if truth is None:
-            raise DatasetError(f"{inner.name}: no ground truth to use as odometry")
-        match = nearest_timestamps(inner.timestamps, truth.timestamps, 0.01)
-        if (match < 0).any():
-            raise DatasetError(f"{inner.name}: {int((match < 0).sum())} frames have no ground-truth pose")
-        self._poses = truth.poses[match]
+        self._poses = truth_per_frame(inner)
 
     @property
     def has_odometry(self) -> bool:
@@ -150,4 +155,21 @@ class TruthAsOdometry(DatasetView):
     def frame(self, index: int) -> Frame:
         f = self.inner.frame(index)
         f.odometry = self._poses[index].copy()
+        return f
+
+
+class ScaledDepth(DatasetView):
+    """A view whose depth is read with a calibrated scale: metric depth x ``factor`` (the camera's raw units
+    per metre divided by it), e.g. the factor ``objslam calibrate depth-scale`` measured."""
+
+    def __init__(self, inner: Dataset, factor: float):
+        super().__init__(inner)
+        if not factor > 0:
+            raise DatasetError(f"depth scale factor must be positive, got {factor}")
+        self.factor = factor
+        self.camera = replace(inner.camera, depth_scale=inner.camera.depth_scale / factor)
+
+    def frame(self, index: int) -> Frame:
+        f = self.inner.frame(index)
+        f.camera = self.camera
         return f
