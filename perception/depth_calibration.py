@@ -1,8 +1,9 @@
 """Depth-scale calibration against a reference trajectory (motion capture, or a dataset's ground truth).
 
 Structured-light depth sensors (Kinect v1 and its kin) report depth with device-specific systematic errors
-(Smisek et al. 2011, "3D with Kinect"; Khoshelham 2011); the first-order part is a scale. A scale error makes every metric motion that depth measures too short or too long, so a trajectory built on
-it is off in size against the reference, and no rigid (SE(3)) alignment removes that.
+(Smisek et al. 2011, "3D with Kinect"; Khoshelham 2011); the first-order part is a scale. A scale error makes
+every metric motion that depth measures too short or too long, so a trajectory built on it is off in size
+against the reference, and no rigid (SE(3)) alignment removes that.
 
 The estimate: for frame pairs ``gap`` frames apart, point-to-plane ICP between their depth images starts at
 the reference relative pose and settles where the depth geometry agrees best; the ratio of its translation to

@@ -64,6 +64,7 @@ def test_cli_prints_the_calibrated_scale_and_fails_in_one_line():
                          "--stride", "4"], capture_output=True, text=True, timeout=300)
     assert ok.returncode == 0, ok.stderr
     assert "calibrated" in ok.stdout and "nominal 1000" in ok.stdout
-    bad = subprocess.run([sys.executable, "-m", "service", "calibrate", "depth-scale", "synthetic:room?seed=0&frames=8"],
+    too_short = "synthetic:room?seed=0&frames=8"
+    bad = subprocess.run([sys.executable, "-m", "service", "calibrate", "depth-scale", too_short],
                          capture_output=True, text=True, timeout=300)
     assert bad.returncode == 1 and bad.stderr.startswith("objslam: error:") and len(bad.stderr.splitlines()) == 1
