@@ -11,7 +11,7 @@ directory, so that ``objslam run DIR`` puts them through the service's graph wit
 two independent odometries agree with each other and not with the ground truth, the ground truth is off.
 
     python scripts/model_tracking_probe.py [--frames N] [--voxel M] [--stride S] [--predict RUN]
-        [--gate-m M] [--gate-deg D] [--model-frames N] [--out DIR] [--compare RUN]
+        [--gate-m M] [--gate-deg D] [--model-frames N] [--out DIR] [--compare RUN] [--depth-scale U]
 """
 
 from __future__ import annotations
@@ -132,9 +132,10 @@ def main() -> None:
     parser.add_argument("--model-frames", type=int, default=0, help="keep only the last N..2N frames in the model")
     parser.add_argument("--out", type=Path, help="dataset directory to write odometry.txt into")
     parser.add_argument("--compare", type=Path, help="run directory whose odometry.tum to compare over windows")
+    parser.add_argument("--depth-scale", type=float, help="depth units per metre (objslam calibrate depth-scale)")
     args = parser.parse_args()
 
-    dataset = open_dataset(str(args.data))
+    dataset = open_dataset(str(args.data), {"depth_scale": args.depth_scale} if args.depth_scale else None)
     camera = dataset.frame(0).camera
     k = camera.depth
     tracker = SurfaceModelTracker(k.fx, k.fy, k.cx, k.cy, camera.width, camera.height, args.voxel, args.stride,
