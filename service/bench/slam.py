@@ -155,7 +155,7 @@ def _record_odometry(console: Console, results: list[dict], write: Path | None) 
              "odometry (graph odometry sigmas), with the same loop closure and object landmarks: the error "
              "the graph's other factors leave on a perfect trajectory, roughly the floor for any front end. "
              "'Depth ICP / ground-truth translation': the median ratio of `objslam calibrate depth-scale` (depth "
-             "ICP between frames 15 apart, started at the ground-truth motion, every 3rd frame); a third run "
+             "ICP between frames 15 apart, started at the ground-truth motion, every 9th frame); a third run "
              "divides metric depth by it: the depth scale calibrated against the ground truth, the way a depth "
              "sensor is calibrated against a motion-capture reference.")
     record("odometry", "RGB-D odometry: ATE with and without loop closures", "objslam bench odometry",

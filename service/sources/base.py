@@ -166,7 +166,6 @@ class ScaledDepth(DatasetView):
         super().__init__(inner)
         if not factor > 0:
             raise DatasetError(f"depth scale factor must be positive, got {factor}")
-        self.factor = factor
         self.camera = replace(inner.camera, depth_scale=inner.camera.depth_scale / factor)
 
     def frame(self, index: int) -> Frame:
