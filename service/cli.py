@@ -200,7 +200,8 @@ def config_cmd(dump: Annotated[bool, typer.Option("--dump", help="print the defa
         print(yaml.safe_dump(load_settings(config).model_dump(mode="json"), sort_keys=False), end="")
 
 
-calibrate_app = typer.Typer(help="Sensor calibration against a dataset's reference trajectory.")
+calibrate_app = typer.Typer(help="Sensor calibration against a dataset's reference trajectory, and the reference "
+                                  "checked against the sensor.")
 app.add_typer(calibrate_app, name="calibrate")
 
 
@@ -229,6 +230,33 @@ def calibrate_depth_scale_cmd(
                   f"{estimate.ratio:.4f}, quartiles {estimate.q25:.4f} .. {estimate.q75:.4f}")
     console.print(f"depth units per metre: nominal {nominal:g}, calibrated "
                   f"{estimate.calibrated_depth_scale(nominal):.1f}")
+
+
+@calibrate_app.command("reference")
+def calibrate_reference_cmd(
+        dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?... with ground truth")],
+        start: Annotated[int, typer.Option("--start", help="first frame of the pairs")] = 0,
+        stop: Annotated[int | None, typer.Option("--stop", help="frames before this one (default: all)")] = None,
+        gap: Annotated[int, typer.Option("--gap", help="frames between the two of a pair")] = 1,
+        stride: Annotated[int, typer.Option("--stride", help="a pair every N frames")] = 1,
+        margin_mm: Annotated[float, typer.Option("--margin-mm", help="refuted: the reference's depth residual "
+                                                 "exceeds the depth optimum's by more than this")] = 5.0,
+        loops: Annotated[Path | None, typer.Option("--loops", help="a run directory: check its accepted loops "
+                                                   "(loops.json) too")] = None,
+        depth_scale: Annotated[float | None, typer.Option("--depth-scale", help="nominal units per metre")] = None,
+        write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None,
+) -> None:
+    """The reference trajectory checked against the dataset's own depth: for frame pairs, the depth residual of
+    the reference motion, of the motion the depth prefers (ICP started at the reference) and of no motion.
+    Lists the steps the depth refutes and, for consecutive frames, what they alone cost in ATE."""
+    from service.reference_report import report_reference
+    from service.sources import open_dataset
+
+    data = open_dataset(dataset, _camera_overrides(depth_scale=depth_scale))
+    try:
+        report_reference(console, data, dataset, start, stop, gap, stride, margin_mm / 1000.0, loops, write)
+    except (ValueError, OSError) as exc:
+        raise UserError(f"{dataset}: {exc}") from None
 
 
 bench_app = typer.Typer(help="Benchmarks: each prints a table and appends it to docs/benchmarks.md.")
