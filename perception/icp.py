@@ -61,8 +61,19 @@ def downsample(depth_m: np.ndarray, K: Intrinsics, factor: int) -> tuple[np.ndar
     """Every ``factor``-th pixel of a depth image and the matching intrinsics."""
     if factor == 1:
         return depth_m, K
-    return depth_m[::factor, ::factor], Intrinsics(K.fx / factor, K.fy / factor, (K.cx - (factor - 1) / 2) / factor,
-                                                   (K.cy - (factor - 1) / 2) / factor)
+    # pixel u of the subsampled image is pixel factor * u of the full one: the principal point scales with it
+    return depth_m[::factor, ::factor], Intrinsics(K.fx / factor, K.fy / factor, K.cx / factor, K.cy / factor)
+
+
+def project(points: np.ndarray, K: Intrinsics, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-frame points (N, 3) onto an image of ``shape`` (h, w): the mask of points in front of the camera
+    that land inside it, and their flat pixel indices (row * w + column, nearest pixel)."""
+    h, w = shape
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = np.round(points[:, 0] / points[:, 2] * K.fx + K.cx)
+        v = np.round(points[:, 1] / points[:, 2] * K.fy + K.cy)
+    ok = (points[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    return ok, v[ok].astype(int) * w + u[ok].astype(int)
 
 
 def icp_refine(src_depth: np.ndarray, dst_depth: np.ndarray, K: Intrinsics, T_init: np.ndarray,
@@ -87,11 +98,7 @@ def icp_refine(src_depth: np.ndarray, dst_depth: np.ndarray, K: Intrinsics, T_in
     for it in range(iterations):
         gate = max_dist[0] + (max_dist[1] - max_dist[0]) * it / max(1, iterations - 1)
         p = src @ T[:3, :3].T + T[:3, 3]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            u = np.round(p[:, 0] / p[:, 2] * K.fx + K.cx)
-            v = np.round(p[:, 1] / p[:, 2] * K.fy + K.cy)
-        ok = (p[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        idx = v[ok].astype(int) * w + u[ok].astype(int)
+        ok, idx = project(p, K, (h, w))
         q = dst_v.reshape(-1, 3)[idx]
         n = dst_n.reshape(-1, 3)[idx]
         pp = p[ok]

@@ -24,7 +24,7 @@ import numpy as np
 
 from graph.geometry import inverse, motion_magnitude, relative
 from perception.frame import Intrinsics
-from perception.icp import icp_refine, vertex_map
+from perception.icp import icp_refine, project, vertex_map
 
 # coarse to fine: (image level, iterations, correspondence gate from -> to, m)
 PYRAMID = ((4, 15, (0.08, 0.03)), (2, 15, (0.04, 0.02)))
@@ -47,8 +47,11 @@ class PairCheck:
     displacement_deg: float
 
     def refuted(self, margin_m: float) -> bool:
-        """The depth fits another motion better than the reference's by more than ``margin_m``."""
-        return self.T_depth is not None and self.residual_ref_m - self.residual_depth_m > margin_m
+        """The depth fits another motion better than the reference's by more than ``margin_m`` (or the reference
+        motion moves the source depth out of the destination image altogether, while that motion does not)."""
+        if self.T_depth is None or np.isnan(self.residual_depth_m):
+            return False
+        return bool(np.isnan(self.residual_ref_m) or self.residual_ref_m - self.residual_depth_m > margin_m)
 
     @property
     def worse_than_still(self) -> bool:
@@ -62,16 +65,12 @@ def depth_residual(src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsi
     ``step``-th source pixel that lands on valid destination depth; NaN when none does."""
     p = vertex_map(src_depth_m, K)[::step, ::step].reshape(-1, 3)
     p = p[np.isfinite(p[:, 2])] @ T_dst_src[:3, :3].T + T_dst_src[:3, 3]
-    p = p[p[:, 2] > 1e-3]
-    u = np.round(p[:, 0] / p[:, 2] * K.fx + K.cx)
-    v = np.round(p[:, 1] / p[:, 2] * K.fy + K.cy)
-    h, w = dst_depth_m.shape
-    inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
-    z = dst_depth_m[v[inside].astype(int), u[inside].astype(int)]
+    ok, idx = project(p, K, dst_depth_m.shape)
+    z = dst_depth_m.reshape(-1)[idx]
     seen = np.isfinite(z)
     if not seen.any():
         return float("nan")
-    return float(np.median(np.abs(z[seen] - p[inside][seen, 2])))
+    return float(np.median(np.abs(z[seen] - p[ok][seen, 2])))
 
 
 def depth_optimum(src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsics,
@@ -90,8 +89,11 @@ def depth_optimum(src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsic
 
 def check_pair(src: int, dst: int, src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsics,
                T_ref: np.ndarray) -> PairCheck:
-    """The reference motion ``T_ref`` (source points into the destination camera) against the depth."""
+    """The reference motion ``T_ref`` (source points into the destination camera) against the depth. When ICP
+    started at the reference finds too little overlap, it is started again at no motion."""
     T_depth = depth_optimum(src_depth_m, dst_depth_m, K, T_ref)
+    if T_depth is None:
+        T_depth = depth_optimum(src_depth_m, dst_depth_m, K, np.eye(4))
     ref = depth_residual(src_depth_m, dst_depth_m, K, T_ref)
     still = depth_residual(src_depth_m, dst_depth_m, K, np.eye(4))
     if T_depth is None:
@@ -101,15 +103,17 @@ def check_pair(src: int, dst: int, src_depth_m: np.ndarray, dst_depth_m: np.ndar
                      dt, float(np.degrees(dr)))
 
 
-def repaired(reference: np.ndarray, checks: list[PairCheck], margin_m: float) -> tuple[np.ndarray, list[int]]:
-    """The reference poses (N, 4, 4, camera to world) with every refuted step ``i -> i + 1`` among ``checks``
-    replaced by the depth's motion; frames before the first such step are moved with it (the newest part of the
-    trajectory keeps its place). Returns the poses and the refuted steps' first frames."""
-    steps = {c.src: c for c in checks if c.dst == c.src + 1 and c.refuted(margin_m)}
+def repaired(reference: np.ndarray, checks: list[PairCheck], margin_m: float,
+             first_frame: int = 0) -> tuple[np.ndarray, list[int]]:
+    """The reference poses (N, 4, 4, camera to world; pose k is frame ``first_frame + k``) with every refuted
+    step ``i -> i + 1`` among ``checks`` replaced by the depth's motion; frames before such a step are moved with
+    it (the newest part of the trajectory keeps its place). Returns the poses and the refuted steps' first
+    frames."""
+    steps = {c.src - first_frame: c for c in checks if c.dst == c.src + 1 and c.refuted(margin_m)}
     out = reference.copy()
-    # walk backwards from the last frame, so every frame keeps its reference motion to the frame after it
-    # except across a refuted step, where the depth's motion is used
+    # walk back from the last frame: each frame keeps its reference motion to the next one, except across a
+    # refuted step, where the depth's motion is used
     for i in range(len(reference) - 2, -1, -1):
         step = inverse(steps[i].T_depth) if i in steps else relative(reference[i], reference[i + 1])
         out[i] = out[i + 1] @ inverse(step)
-    return out, sorted(steps)
+    return out, sorted(i + first_frame for i in steps if 0 <= i < len(reference) - 1)

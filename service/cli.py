@@ -254,7 +254,10 @@ def calibrate_reference_cmd(
 
     data = open_dataset(dataset, _camera_overrides(depth_scale=depth_scale))
     try:
-        report_reference(console, data, dataset, start, stop, gap, stride, margin_mm / 1000.0, loops, write)
+        options = "".join(f" --{name} {value:g}" for name, value, default in (
+            ("start", start, 0), ("stop", stop, None), ("gap", gap, 1), ("stride", stride, 1),
+            ("margin-mm", margin_mm, 5.0), ("depth-scale", depth_scale, None)) if value != default)
+        report_reference(console, data, dataset, start, stop, gap, stride, margin_mm / 1000.0, loops, write, options)
     except (ValueError, OSError) as exc:
         raise UserError(f"{dataset}: {exc}") from None
 

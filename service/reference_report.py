@@ -10,10 +10,10 @@ import numpy as np
 from rich.console import Console
 
 from graph.geometry import motion_magnitude
+from perception.reference_check import PairCheck
 from service.bench.report import markdown_table, record, show_table
 from service.calibrate import LoopCheck, ReferenceReport, check_loops, check_reference
 from service.sources import Dataset, truth_per_frame
-from perception.reference_check import PairCheck
 
 
 def _mm(x: float) -> str:
@@ -30,7 +30,7 @@ def _step(T: np.ndarray | None) -> str:
 def summary_rows(report: ReferenceReport) -> list[list[str]]:
     """One row of medians over every checked pair."""
     c = [k for k in report.checks if k.T_depth is not None]
-    med = lambda f: float(np.median([f(k) for k in c])) if c else float("nan")  # noqa: E731
+    med = lambda f: float(np.nanmedian([f(k) for k in c])) if c else float("nan")  # noqa: E731
     cost = f"{report.repair_ate_m * 100:.2f}" if report.repair_ate_m is not None else "n/a (gap or stride > 1)"
     return [[len(report.checks), len(report.checks) - len(c), _mm(med(lambda k: k.displacement_m)),
              f"{med(lambda k: k.displacement_deg):.2f}", _mm(med(lambda k: k.residual_ref_m)),
@@ -68,20 +68,22 @@ def loop_rows(loops: list[LoopCheck]) -> list[list[str]]:
 
 
 def report_reference(console: Console, dataset: Dataset, spec: str, start: int, stop: int | None, gap: int,
-                     stride: int, margin_m: float, run_dir: Path | None, write: Path | None) -> ReferenceReport:
-    """Check, print, and (with ``write``) record the reference-check section of the benchmarks file."""
+                     stride: int, margin_m: float, run_dir: Path | None, write: Path | None,
+                     options: str = "") -> ReferenceReport:
+    """Check, print, and (with ``write``) record the reference-check section of the benchmarks file.
+    ``options`` are the command-line options to record beside the command."""
     reference = truth_per_frame(dataset)
+    records = json.loads((run_dir / "loops.json").read_text()) if run_dir is not None else None  # fail early
     report = check_reference(dataset, start, stop, gap, stride, margin_m, reference)
     title = f"reference against depth: {Path(spec).name if not spec.startswith('synthetic:') else spec}"
     show_table(console, title, SUMMARY_HEADER, summary_rows(report))
     show_table(console, f"steps the depth refutes (margin {margin_m * 1000:g} mm)", REFUTED_HEADER, refuted_rows(report))
     loops = []
-    if run_dir is not None:
-        loops = check_loops(dataset, json.loads((run_dir / "loops.json").read_text()), reference)
+    if records is not None:
+        loops = check_loops(dataset, records, reference)
         show_table(console, f"accepted loops of {run_dir}", LOOP_HEADER, loop_rows(loops))
     if write is not None:
-        command = (f"objslam calibrate reference {spec}" + (f" --gap {gap}" if gap != 1 else "")
-                   + (f" --stride {stride}" if stride != 1 else "") + (" --loops RUN" if run_dir else ""))
+        command = f"objslam calibrate reference {spec}{options}" + (" --loops RUN" if run_dir else "")
         table = markdown_table(SUMMARY_HEADER, summary_rows(report)) + "\n\n" + \
             markdown_table(REFUTED_HEADER, refuted_rows(report))
         if loops:
