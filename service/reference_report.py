@@ -31,7 +31,7 @@ def summary_rows(report: ReferenceReport) -> list[list[str]]:
     """One row of medians over every checked pair."""
     c = [k for k in report.checks if k.T_depth is not None]
     med = lambda f: float(np.nanmedian([f(k) for k in c])) if c else float("nan")  # noqa: E731
-    cost = f"{report.repair_ate_m * 100:.2f}" if report.repair_ate_m is not None else "n/a (gap or stride > 1)"
+    cost = f"{report.repair_ate_m * 100:.2f}" if report.repair_ate_m is not None else "n/a (needs gap 1, stride 1, >= 3 frames)"
     return [[len(report.checks), len(report.checks) - len(c), _mm(med(lambda k: k.displacement_m)),
              f"{med(lambda k: k.displacement_deg):.2f}", _mm(med(lambda k: k.residual_ref_m)),
              _mm(med(lambda k: k.residual_depth_m)), len(report.refuted_steps),
