@@ -31,7 +31,8 @@ def summary_rows(report: ReferenceReport) -> list[list[str]]:
     """One row of medians over every checked pair."""
     c = [k for k in report.checks if k.T_depth is not None]
     med = lambda f: float(np.nanmedian([f(k) for k in c])) if c else float("nan")  # noqa: E731
-    cost = f"{report.repair_ate_m * 100:.2f}" if report.repair_ate_m is not None else "n/a (needs gap 1, stride 1, >= 3 frames)"
+    cost = (f"{report.repair_ate_m * 100:.2f}" if report.repair_ate_m is not None
+            else "n/a (needs gap 1, stride 1, >= 3 frames)")
     return [[len(report.checks), len(report.checks) - len(c), _mm(med(lambda k: k.displacement_m)),
              f"{med(lambda k: k.displacement_deg):.2f}", _mm(med(lambda k: k.residual_ref_m)),
              _mm(med(lambda k: k.residual_depth_m)), len(report.refuted_steps),
@@ -39,7 +40,8 @@ def summary_rows(report: ReferenceReport) -> list[list[str]]:
 
 
 SUMMARY_HEADER = ["pairs", "ICP failed", "median depth optimum - reference (mm)", "(deg)",
-                  "median residual at reference (mm)", "at depth optimum (mm)", "refuted", "of them worse than no motion",
+                  "median residual at reference (mm)", "at depth optimum (mm)", "refuted",
+                  "of them worse than no motion",
                   "ATE of the repaired reference against the original (cm)"]
 REFUTED_HEADER = ["frames", "reference motion", "depth optimum", "residual at reference (mm)",
                   "at depth optimum (mm)", "with no motion (mm)"]
@@ -77,7 +79,8 @@ def report_reference(console: Console, dataset: Dataset, spec: str, start: int, 
     report = check_reference(dataset, start, stop, gap, stride, margin_m, reference)
     title = f"reference against depth: {Path(spec).name if not spec.startswith('synthetic:') else spec}"
     show_table(console, title, SUMMARY_HEADER, summary_rows(report))
-    show_table(console, f"steps the depth refutes (margin {margin_m * 1000:g} mm)", REFUTED_HEADER, refuted_rows(report))
+    show_table(console, f"steps the depth refutes (margin {margin_m * 1000:g} mm)", REFUTED_HEADER,
+               refuted_rows(report))
     loops = []
     if records is not None:
         loops = check_loops(dataset, records, reference)
