@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 
@@ -87,3 +88,33 @@ class Frame:
             d.flags.writeable = False
             self._depth_m = d
         return self._depth_m
+
+
+class Reason(str, Enum):
+    """Why a frame was rejected; the values are the keys of ``frames_rejected`` in status."""
+
+    TRUNCATED = "truncated"
+    BAD_MAGIC = "bad_magic"
+    UNSUPPORTED_VERSION = "unsupported_version"
+    BAD_HEADER = "bad_header"
+    BAD_FIELD = "bad_field"
+    BAD_INTRINSICS = "bad_intrinsics"
+    BAD_POSE = "bad_pose"
+    SIZE_MISMATCH = "size_mismatch"
+    BAD_IMAGE = "bad_image"
+    BAD_DETECTIONS = "bad_detections"
+    TOO_LARGE = "too_large"
+    DUPLICATE_TIMESTAMP = "duplicate_timestamp"
+    OUT_OF_ORDER = "out_of_order"
+    EMPTY_DEPTH = "empty_depth"
+    NO_ODOMETRY = "no_odometry"
+    ODOMETRY_JUMP = "odometry_jump"
+
+
+class FrameRejected(Exception):
+    """A message that is not a valid frame; ``reason`` is counted, ``detail`` is logged."""
+
+    def __init__(self, reason: Reason, detail: str):
+        super().__init__(f"{reason.value}: {detail}")
+        self.reason = reason
+        self.detail = detail

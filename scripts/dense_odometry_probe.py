@@ -18,9 +18,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from graph.metrics import trajectory_error  # noqa: E402
+from evaluation.trajectory_metrics import trajectory_error  # noqa: E402
 from perception.registration import depth_in_color  # noqa: E402
-from service.sources import open_dataset  # noqa: E402
+from sources import open_dataset  # noqa: E402
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "7scenes_redkitchen_1000"
 TYPES = {"rgbd": cv2.OdometryType_RGB_DEPTH, "rgb": cv2.OdometryType_RGB, "depth": cv2.OdometryType_DEPTH}

@@ -16,7 +16,7 @@ from service.config import load_settings
 from service.node import ServiceNode
 from service.protocol import encode_frame
 from service.replay import frame_publisher
-from service.sources import open_dataset
+from sources import open_dataset
 from service.zenoh_session import open_session
 
 SPEC = "synthetic:room?seed=0&frames=160&fps=10&width=320&height=240"

@@ -28,10 +28,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from graph.geometry import motion_magnitude, relative  # noqa: E402
-from graph.metrics import trajectory_error  # noqa: E402
+from evaluation.trajectory_metrics import trajectory_error  # noqa: E402
 from service.outputs import tum_text  # noqa: E402
-from service.sources import Trajectory, open_dataset  # noqa: E402
-from service.sources.tum import read_trajectory  # noqa: E402
+from sources import Trajectory, open_dataset  # noqa: E402
+from sources.tum import read_trajectory  # noqa: E402
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "7scenes_redkitchen_1000"
 

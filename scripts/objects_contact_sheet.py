@@ -22,8 +22,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from perception.features import transform  # noqa: E402
 from perception.warp import project  # noqa: E402
-from service.sources import open_dataset  # noqa: E402
-from service.sources.tum import read_trajectory  # noqa: E402
+from sources import open_dataset  # noqa: E402
+from sources.tum import read_trajectory  # noqa: E402
 
 
 def draw_objects(rgb: np.ndarray, world_to_camera: np.ndarray, K: np.ndarray, objects: list[dict]) -> np.ndarray:

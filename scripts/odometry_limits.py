@@ -26,10 +26,10 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from graph.geometry import motion_magnitude, pose_from_tum, relative
-from graph.metrics import trajectory_error
+from evaluation.trajectory_metrics import trajectory_error
 from perception.icp import icp_refine
-from service.sources import open_dataset
-from service.sources.tum import read_trajectory
+from sources import open_dataset
+from sources.tum import read_trajectory
 
 
 def offline_graph(odometry: np.ndarray, loops: list[tuple[int, int, np.ndarray]]) -> np.ndarray:

@@ -12,9 +12,9 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 
-from service import lc_cli
+from rl import commands as lc_cli
 from service.config import ConfigError, Settings, dump_defaults, load_settings
-from service.sources import DatasetError
+from sources import DatasetError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True,
                   help="objslam: semantic SLAM backend over zenoh (object association, iSAM2, RL loop closure).")
@@ -107,7 +107,7 @@ def replay(dataset: Annotated[str, typer.Argument(help="directory or synthetic:N
            cy: Annotated[float | None, typer.Option("--cy")] = None) -> None:
     """Publish a dataset's frames to a running service (protocol v1)."""
     from service.replay import Replayer, frame_publisher
-    from service.sources import open_dataset
+    from sources import open_dataset
     from service.zenoh_session import open_session
 
     if rate is not None and max_rate:
@@ -217,8 +217,8 @@ def calibrate_depth_scale_cmd(
     """The depth sensor's scale against the ground truth: depth ICP between frame pairs, started at the
     reference motion, against that motion. Prints the calibrated depth units per metre (for --depth-scale or
     camera.json's depth_scale)."""
-    from service.calibrate import calibrate_depth_scale
-    from service.sources import open_dataset
+    from bench.calibrate import calibrate_depth_scale
+    from sources import open_dataset
 
     data = open_dataset(dataset, _camera_overrides(depth_scale=depth_scale))
     try:
@@ -249,8 +249,8 @@ def calibrate_reference_cmd(
     """The reference trajectory checked against the dataset's own depth: for frame pairs, the depth residual of
     the reference motion, of the motion the depth prefers (ICP started at the reference) and of no motion.
     Lists the steps the depth refutes and, for consecutive frames, what they alone cost in ATE."""
-    from service.reference_report import report_reference
-    from service.sources import open_dataset
+    from bench.reference_report import report_reference
+    from sources import open_dataset
 
     data = open_dataset(dataset, _camera_overrides(depth_scale=depth_scale))
     try:
@@ -272,7 +272,7 @@ def bench_throughput(frames: Annotated[int, typer.Option("--frames")] = 300,
                      write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None
                      ) -> None:
     """Replay-to-graph throughput at max rate over zenoh (frames pre-encoded, service in a subprocess)."""
-    from service.bench.throughput import run_throughput
+    from bench.throughput import run_throughput
 
     run_throughput(console, dataset, frames, write)
 
@@ -283,7 +283,7 @@ def bench_isam2(poses: Annotated[int, typer.Option("--poses")] = 10_000,
                 seed: Annotated[int, typer.Option("--seed")] = 0,
                 write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None) -> None:
     """iSAM2 update cost on a simulated exploration: odometry, loop closures, landmark observations."""
-    from service.bench.isam2 import run_isam2_bench
+    from bench.isam2 import run_isam2_bench
 
     if poses < 20 or landmarks < 1:
         raise UserError("--poses must be at least 20 and --landmarks at least 1")
@@ -299,7 +299,7 @@ def bench_overload(seconds: Annotated[float, typer.Option("--seconds", help="ove
                    write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None
                    ) -> None:
     """Publish faster than serve processes: bounded memory, counted drops, status latency under load."""
-    from service.bench.overload import run_overload
+    from bench.overload import run_overload
 
     if seconds <= 0 or factor <= 0 or (frames is not None and frames <= 0):
         raise UserError("--seconds, --factor and --frames must be positive")
@@ -313,7 +313,7 @@ WriteOpt = Annotated[Path | None, typer.Option("--write", help="benchmarks markd
 @bench_app.command("odometry")
 def bench_odometry(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
     """ATE/RPE of the RGB-D front end with and without loops (7-Scenes + 3 synthetic seeds); also loop table."""
-    from service.bench.slam import run_slam_bench
+    from bench.slam import run_slam_bench
 
     run_slam_bench(console, dataset, write)
 
@@ -321,7 +321,7 @@ def bench_odometry(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
 @bench_app.command("loops")
 def bench_loops(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
     """Loop candidates judged against ground truth (same runs as `bench odometry`, both tables recorded)."""
-    from service.bench.slam import run_slam_bench
+    from bench.slam import run_slam_bench
 
     run_slam_bench(console, dataset, write)
 
@@ -332,7 +332,7 @@ SeedsOpt = Annotated[str, typer.Option("--seeds", help="synthetic seeds, comma s
 @bench_app.command("landmarks")
 def bench_landmarks(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
     """Objects in the graph: ATE with and without object landmarks and loop closures, landmark errors."""
-    from service.bench.landmarks import run_landmarks_bench
+    from bench.landmarks import run_landmarks_bench
 
     run_landmarks_bench(console, dataset, write)
 
@@ -346,8 +346,8 @@ def bench_policy_loops(dataset: DatasetsOpt = None,
                        = "config1",
                        write: WriteOpt = None) -> None:
     """Two passes per dataset: map + grid world, train a policy, re-run with policy loop closures."""
-    from service.bench.policy_loops import run_policy_loops_bench
-    from service.lc_cli import INIT_CHECKPOINT, POLICY_DIR
+    from bench.policy_loops import run_policy_loops_bench
+    from rl.commands import INIT_CHECKPOINT, POLICY_DIR
 
     start = POLICY_DIR / INIT_CHECKPOINT if init_from == "config1" else Path(init_from) if init_from else None
     run_policy_loops_bench(console, dataset, steps, write, start)
@@ -360,7 +360,7 @@ def bench_lc_batch(grid: Annotated[str, typer.Option("--map", help="grid configu
                    Path("docs/lc_batch_ablation.png"),
                    write: WriteOpt = None) -> None:
     """Fig. 3.10: fixed 512, fixed 2048 and entropy-based batch sizes, reward curves and evaluation."""
-    from service.bench.lc_ablation import run_batch_ablation
+    from bench.lc_ablation import run_batch_ablation
 
     run_batch_ablation(console, grid, steps, plot, write)
 
@@ -376,7 +376,7 @@ def _seeds(text: str) -> list[int]:
 def bench_association(seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Option("--frames")] = 300,
                       write: WriteOpt = None) -> None:
     """NPDA precision/recall on synthetic keyframes, the Table 2.2 grid, ablation and timing."""
-    from service.bench.association import run_association_bench
+    from bench.association import run_association_bench
 
     run_association_bench(console, _seeds(seeds), frames, write)
 
@@ -385,7 +385,7 @@ def bench_association(seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Op
 def bench_objects(seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Option("--frames")] = 300,
                   write: WriteOpt = None) -> None:
     """Objects mapped / present, false objects, ground-plane IoU and centroid error on synthetic scenes."""
-    from service.bench.objects import run_objects_bench
+    from bench.objects import run_objects_bench
 
     run_objects_bench(console, _seeds(seeds), frames, write)
 
@@ -394,7 +394,7 @@ def bench_objects(seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Option
 def bench_stages(dataset: Annotated[str, typer.Option("--dataset", help="dataset spec")],
                  frames: Annotated[int | None, typer.Option("--frames")] = None, write: WriteOpt = None) -> None:
     """Per-stage latency of the whole pipeline; keyframes/s of detection + association."""
-    from service.bench.stages import run_stages_bench
+    from bench.stages import run_stages_bench
 
     run_stages_bench(console, dataset, frames, write)
 
@@ -406,7 +406,7 @@ def bench_persistence(dataset: Annotated[str, typer.Option("--dataset", help="da
                       "100,200,300",
                       write: WriteOpt = None) -> None:
     """Snapshot capture / write / load / restore time and size against the number of keyframes."""
-    from service.bench.persistence import run_persistence_bench
+    from bench.persistence import run_persistence_bench
 
     try:
         checkpoints = [int(k) for k in keyframes.split(",")]
@@ -419,7 +419,7 @@ def bench_persistence(dataset: Annotated[str, typer.Option("--dataset", help="da
 def bench_frontends(dataset: Annotated[str, typer.Option("--dataset", help="dataset with ground truth")],
                     frames: Annotated[int, typer.Option("--frames")] = 400, write: WriteOpt = None) -> None:
     """Compare odometry front-end candidates (ORB, ORB + ICP, SIFT) on a real segment."""
-    from service.bench.frontends import run_frontends_bench
+    from bench.frontends import run_frontends_bench
 
     run_frontends_bench(console, dataset, frames, write)
 
@@ -429,7 +429,7 @@ def bench_detector(dataset: Annotated[str, typer.Option("--dataset", help="datas
                    every: Annotated[int, typer.Option("--every", help="every N-th frame")] = 10,
                    write: WriteOpt = None) -> None:
     """Detector speed and detections per class on real frames; saves contact sheets in docs/."""
-    from service.bench.detector import run_detector_bench
+    from bench.detector import run_detector_bench
 
     run_detector_bench(console, dataset, every, write)
 

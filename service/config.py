@@ -10,6 +10,7 @@ from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, Field, ValidationError
+from sources.tum import CameraDefaults
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
 
@@ -143,17 +144,6 @@ class PersistenceSettings(BaseModel):
 
     every_keyframes: int = Field(10, ge=1, description="write a snapshot after this many new keyframes")
     keep: int = Field(3, ge=2, description="snapshots kept; older ones are deleted after each write")
-
-
-class CameraDefaults(BaseModel):
-    """Camera of a dataset directory without camera files (camera.json, a 7-Scenes camera-intrinsics.txt);
-    the `run` / `replay` flags --fx, --fy, --cx, --cy, --depth-scale override it. Defaults: TUM's."""
-
-    fx: float = 525.0
-    fy: float = 525.0
-    cx: float = 319.5
-    cy: float = 239.5
-    depth_scale: float = 5000.0
 
 
 class Settings(BaseSettings):

@@ -15,12 +15,13 @@ from typing import Any
 
 import numpy as np
 
-from graph.metrics import match_timestamps
+from graph.trajectory import match_timestamps
 from perception.clustering import ClusterConfig
-from service.object_metrics import aligned_objects, object_scores
-from service.outputs import ate_table, atomic_write, error_dict, evaluate
-from service.sources import DatasetError, Trajectory, open_dataset
-from service.sources.tum import read_trajectory
+from evaluation.object_metrics import aligned_objects, object_scores
+from evaluation.trajectory_metrics import error_dict, evaluate
+from service.outputs import ate_table, atomic_write
+from sources import DatasetError, Trajectory, open_dataset
+from sources.tum import read_trajectory
 
 BEGIN, END = "<!-- objslam eval -->", "<!-- /objslam eval -->"
 
@@ -47,7 +48,7 @@ def evaluate_run(run_dir: Path, gt_spec: str) -> str:
     report = run_dir / "report.md"
     atomic_write(report, with_section(report.read_text() if report.is_file() else None, section))
     atomic_write(run_dir / "metrics.json", json.dumps(result, indent=1))
-    from service.evalplot import plot_errors  # matplotlib is slow to import
+    from evaluation.plot import plot_errors  # matplotlib is slow to import
 
     plot_errors(run_dir / "eval.png", {name: position_errors(runs[name], gt, err.alignment)
                                        for name, err in errors.items()}, gt_spec)

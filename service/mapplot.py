@@ -10,8 +10,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from graph.metrics import TrajectoryError  # noqa: E402
-from service.sources.base import Trajectory  # noqa: E402
+from evaluation.trajectory_metrics import TrajectoryError  # noqa: E402
+from graph.trajectory import Trajectory  # noqa: E402
 
 
 def ground_axes(points: np.ndarray) -> np.ndarray:

@@ -31,10 +31,10 @@ from service.config import Settings
 from service.ingest import IngestQueue
 from service.outputs import run_summary, write_outputs
 from service.persistence import Persistence
-from service.pipeline import Pipeline
+from slam.core import Pipeline
 from service.protocol import VERSION, FrameRejected, Limits, decode_frame
 from perception.frame import Frame
-from service.sources.base import Trajectory
+from graph.trajectory import Trajectory
 from service.stats import ServiceStats
 
 log = logging.getLogger(__name__)

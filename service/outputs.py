@@ -12,8 +12,9 @@ from typing import Any
 import numpy as np
 
 from graph.geometry import pose_to_tum
-from graph.metrics import TrajectoryError, match_timestamps, trajectory_error
-from service.sources.base import Trajectory
+from evaluation.trajectory_metrics import error_dict, evaluate
+
+from graph.trajectory import Trajectory
 
 
 def atomic_write(path: Path, data: str | bytes) -> None:
@@ -35,16 +36,6 @@ def tum_text(traj: Trajectory) -> str:
     return "\n".join(lines) + "\n"
 
 
-def evaluate(traj: Trajectory, gt: Trajectory | None) -> TrajectoryError | None:
-    """ATE / RPE of ``traj`` against ground truth matched by timestamp, or None without ground truth."""
-    if gt is None or len(traj) < 3:
-        return None
-    i_est, i_ref = match_timestamps(traj.timestamps, gt.timestamps)
-    if len(i_est) < 3:
-        return None
-    return trajectory_error(traj.poses[i_est], gt.poses[i_ref])
-
-
 def write_outputs(out: Path, trajectory: Trajectory, odometry: Trajectory, summary: dict[str, Any],
                   gt: Trajectory | None, objects: list | None = None, loops: list | None = None,
                   cloud: np.ndarray | None = None) -> dict[str, Any]:
@@ -58,7 +49,7 @@ def write_outputs(out: Path, trajectory: Trajectory, odometry: Trajectory, summa
         buf = io.BytesIO()
         np.save(buf, np.asarray(cloud, np.float32))
         atomic_write(out / "cloud.npy", buf.getvalue())
-        from service.lc_grid import try_write_grid
+        from rl.map_files import try_write_grid
 
         summary = {**summary, "grid_world": try_write_grid(out, summary.get("dataset", "map"), trajectory, cloud,
                                                            objects or [])}
@@ -73,13 +64,6 @@ def write_outputs(out: Path, trajectory: Trajectory, odometry: Trajectory, summa
 
     plot_map(out / "map.png", trajectory, odometry, gt, metrics["trajectory"], objects, loops)
     return summary
-
-
-def error_dict(err: TrajectoryError) -> dict[str, float]:
-    return {"pairs": err.pairs, "ate_rmse_m": err.ate_rmse_m, "ate_mean_m": err.ate_mean_m,
-            "ate_median_m": err.ate_median_m, "ate_max_m": err.ate_max_m,
-            "rpe_trans_rmse_m": err.rpe_trans_rmse_m, "rpe_rot_rmse_deg": err.rpe_rot_rmse_deg,
-            "alignment": np.asarray(err.alignment, float).tolist()}
 
 
 def report_markdown(summary: dict[str, Any]) -> str:

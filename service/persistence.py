@@ -38,7 +38,10 @@ HEADER = struct.Struct("<8sQ32s")
 TABLE = struct.Struct("<QQ")
 FORMAT = 1
 _NAME = re.compile(r"^snapshot-(\d{8,})\.bin$")
-_OWN_PACKAGES = ("perception.", "graph.", "service.")
+_OWN_PACKAGES = ("perception.", "graph.", "service.", "slam.", "loops.", "rl.", "sources.")
+MOVED = {"service.pipeline": "slam.core", "service.loop_closure": "loops.closer",
+         "perception.place_recognition": "loops.place_recognition"}
+"""Modules whose dataclasses snapshots of earlier releases name (release 0.1.0 -> now)."""
 _ALLOWED = {("builtins", n) for n in ("set", "frozenset", "complex", "slice", "bytearray")} | {
     ("collections", "Counter"), ("collections", "OrderedDict"), ("numpy", "dtype"), ("numpy", "ndarray")} | {
     (m, n) for m in ("numpy.core.multiarray", "numpy._core.multiarray") for n in ("_reconstruct", "scalar")} | {
@@ -67,6 +70,7 @@ class _PlainUnpickler(pickle.Unpickler):
     """Admits numpy arrays, a few builtins and the dataclasses of objslam's packages; nothing callable else."""
 
     def find_class(self, module: str, name: str) -> Any:
+        module = MOVED.get(module, module)
         if (module, name) in _ALLOWED or module == "numpy.dtypes":
             return super().find_class(module, name)
         if module.startswith(_OWN_PACKAGES):

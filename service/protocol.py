@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from graph.geometry import is_rigid, pose_from_tum, pose_to_tum
-from perception.frame import CameraModel, Detection, Frame, Intrinsics
+from perception.frame import CameraModel, Detection, Frame, FrameRejected, Intrinsics, Reason
 
 MAGIC = b"OSLM"
 VERSION = 1
@@ -34,36 +34,6 @@ DEPTH_ENCODINGS = ("png16", "u16le")
 MAX_DETECTIONS = 512
 MAX_HEADER_BYTES = 1 << 20
 MAX_JSON_INT = 2**63
-
-
-class Reason(str, Enum):
-    """Why a frame was rejected; the values are the keys of ``frames_rejected`` in status."""
-
-    TRUNCATED = "truncated"
-    BAD_MAGIC = "bad_magic"
-    UNSUPPORTED_VERSION = "unsupported_version"
-    BAD_HEADER = "bad_header"
-    BAD_FIELD = "bad_field"
-    BAD_INTRINSICS = "bad_intrinsics"
-    BAD_POSE = "bad_pose"
-    SIZE_MISMATCH = "size_mismatch"
-    BAD_IMAGE = "bad_image"
-    BAD_DETECTIONS = "bad_detections"
-    TOO_LARGE = "too_large"
-    DUPLICATE_TIMESTAMP = "duplicate_timestamp"
-    OUT_OF_ORDER = "out_of_order"
-    EMPTY_DEPTH = "empty_depth"
-    NO_ODOMETRY = "no_odometry"
-    ODOMETRY_JUMP = "odometry_jump"
-
-
-class FrameRejected(Exception):
-    """A message that is not a valid frame; ``reason`` is counted, ``detail`` is logged."""
-
-    def __init__(self, reason: Reason, detail: str):
-        super().__init__(f"{reason.value}: {detail}")
-        self.reason = reason
-        self.detail = detail
 
 
 @dataclass(frozen=True)

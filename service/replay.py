@@ -11,7 +11,7 @@ import zenoh
 from tqdm import tqdm
 
 from service.protocol import encode_frame
-from service.sources.base import Dataset
+from sources.base import Dataset
 
 log = logging.getLogger(__name__)
 

@@ -13,7 +13,7 @@ from service.config import Settings
 from service.node import ServiceNode
 from service.outputs import run_summary, write_outputs
 from service.replay import Replayer, frame_publisher
-from service.sources import Dataset, open_dataset
+from sources import Dataset, open_dataset
 from service.zenoh_session import open_session
 
 log = logging.getLogger(__name__)

@@ -45,7 +45,7 @@ def free_port() -> int:
 @pytest.fixture
 def router():
     """A zenoh router on 127.0.0.1 (no multicast): (its session, the endpoint clients connect to)."""
-    from service.bench.rig import router as open_router
+    from bench.rig import router as open_router
 
     port = free_port()
     session = open_router(port)

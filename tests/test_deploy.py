@@ -19,7 +19,7 @@ import yaml
 
 from service.cli import _settings, app
 from service.config import ConfigError, Settings
-from service.sources import open_dataset
+from sources import open_dataset
 
 ROOT = Path(__file__).resolve().parents[1]
 DEPLOY = ROOT / "deploy"

@@ -8,10 +8,10 @@ import sys
 import numpy as np
 import pytest
 
-from perception.depth_calibration import estimate_depth_scale
+from evaluation.depth_calibration import estimate_depth_scale
 from perception.frame import Intrinsics
-from service.calibrate import calibrate_depth_scale, frame_pairs
-from service.sources import DatasetError, ScaledDepth, open_dataset
+from bench.calibrate import calibrate_depth_scale, frame_pairs
+from sources import DatasetError, ScaledDepth, open_dataset
 
 SCENE = "synthetic:room?seed=0&frames=60"  # 10 cm per frame: pairs 2 frames apart
 

@@ -20,7 +20,7 @@ from perception.centernet_input import ReshapeError, reshaped_centernet
 from perception.detector_decoders import (InputTransform, decode_centernet, decode_nanodet, decode_yolo,
                                           fitted_height, letterbox, nms, select, stretch)
 from perception.frame import Detection
-from service.bench.detector import run_detector_bench
+from bench.detector import run_detector_bench
 
 # Hand-measured object boxes (x1, y1, x2, y2) in image pixels, read off annotated renders with a 50 px grid.
 CAT_CHELSEA = (0.0, 0.0, 451.0, 300.0)  # the cat fills the frame

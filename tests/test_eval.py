@@ -11,9 +11,9 @@ import pytest
 
 from service.config import load_settings
 from service.evaluate import evaluate_run, with_section
-from service.object_metrics import aligned_objects, object_scores
+from evaluation.object_metrics import aligned_objects, object_scores
 from service.run import run_dataset
-from service.sources import DatasetError, open_dataset
+from sources import DatasetError, open_dataset
 from tests.test_tum_loader import _write_tum
 
 SPEC = "synthetic:room?seed=1&frames=100&width=320&height=240"

@@ -14,7 +14,7 @@ import pytest
 import zenoh
 
 from graph.geometry import pose_from_tum
-from service.sources import open_dataset
+from sources import open_dataset
 from tests.conftest import free_port
 
 pytestmark = pytest.mark.integration

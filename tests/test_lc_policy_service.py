@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from graph.geometry import motion_magnitude, pose_from_tum, relative
-from service.bench.rig import free_port, query_status, router, start_serve, stop_serve, wait_for_status
-from service.sources import open_dataset
+from bench.rig import free_port, query_status, router, start_serve, stop_serve, wait_for_status
+from sources import open_dataset
 
 pytestmark = pytest.mark.integration
 ROOT = Path(__file__).resolve().parents[1]

@@ -8,9 +8,9 @@ import pytest
 from graph.geometry import relative
 from graph.pose_graph import PoseGraph
 from perception.odometry import FeatureExtractor, RelativePoseEstimator
-from perception.place_recognition import PlaceIndex, global_descriptor
-from service.loop_closure import KeyframeEntry, LoopCloser, LoopConfig
-from service.sources import open_dataset
+from loops.place_recognition import PlaceIndex, global_descriptor
+from loops.closer import KeyframeEntry, LoopCloser, LoopConfig
+from sources import open_dataset
 
 
 @pytest.fixture(scope="module")

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from graph.metrics import trajectory_error, umeyama
+from evaluation.trajectory_metrics import trajectory_error, umeyama
 from service.outputs import tum_text
-from service.sources.base import Trajectory
+from sources.base import Trajectory
 
 
 def _random_trajectory(n: int, seed: int) -> np.ndarray:

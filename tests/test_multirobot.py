@@ -14,7 +14,7 @@ import pytest
 import zenoh
 
 from graph.geometry import pose_from_tum
-from service.sources import open_dataset
+from sources import open_dataset
 
 pytestmark = pytest.mark.integration
 ROBOTS = {  # robot -> (dataset, frames): different seeds and lengths, small images so replay is quick

@@ -14,10 +14,10 @@ from graph.pose_graph import PoseGraph
 from perception.clustering import ObjectEllipsoid
 from perception.features import FeatureConfig, transform_feature
 from perception.object_map import ObjectMapper
-from service.bench.association import load_scene
+from bench.association import load_scene
 from service.config import load_settings
-from service.pipeline import Pipeline
-from service.sources import open_dataset
+from slam.core import Pipeline
+from sources import open_dataset
 
 
 @pytest.fixture(scope="module")

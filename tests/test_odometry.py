@@ -12,7 +12,7 @@ from perception.frontend import KeyframePolicy, VisualOdometry
 from perception.icp import icp_refine
 from perception.odometry import FeatureExtractor, RelativePoseEstimator
 from perception.registration import depth_at_color_pixels, depth_in_color
-from service.sources import open_dataset
+from sources import open_dataset
 from tests.conftest import REDKITCHEN, requires_redkitchen
 
 SPEC = "synthetic:room?seed=0&frames=300"
@@ -81,7 +81,7 @@ def test_depth_lookup_at_colour_pixels_agrees_with_full_registration():
 
 @requires_redkitchen
 def test_visual_odometry_on_a_real_7scenes_segment_has_small_ate():
-    from graph.metrics import trajectory_error
+    from evaluation.trajectory_metrics import trajectory_error
 
     ds = open_dataset(str(REDKITCHEN))
     vo = VisualOdometry(ds.camera, KeyframePolicy())

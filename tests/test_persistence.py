@@ -23,10 +23,10 @@ from graph.pose_graph import PoseGraph
 from service.config import ConfigError, load_settings
 from service.node import ServiceNode
 from service.persistence import HEADER, Persistence, SnapshotError, SnapshotStore, decode, encode, seal, unseal
-from service.pipeline import Pipeline
+from slam.core import Pipeline
 from service.protocol import decode_frame, encode_frame
 from service.replay import frame_publisher
-from service.sources import open_dataset
+from sources import open_dataset
 from service.zenoh_session import open_session
 from tests.test_integration_zenoh import _get, _wait_for_service
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from service.config import load_settings
-from service.pipeline import Pipeline
+from slam.core import Pipeline
 from service.protocol import FrameRejected, Reason
-from service.sources import open_dataset
+from sources import open_dataset
 from tests.conftest import REDKITCHEN, make_frame, requires_redkitchen
 
 

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from graph.geometry import pose_to_tum, relative
-from graph.metrics import trajectory_error
+from evaluation.trajectory_metrics import trajectory_error
 from perception.frame import Intrinsics
-from perception.reference_check import PairCheck, depth_residual, repaired
-from service.calibrate import check_loops, check_reference, frame_pairs
-from service.sources import open_dataset, truth_per_frame
+from evaluation.reference_check import PairCheck, depth_residual, repaired
+from bench.calibrate import check_loops, check_reference, frame_pairs
+from sources import open_dataset, truth_per_frame
 
 SCENE = "synthetic:room?seed=0&frames=60"
 GLITCH_AT = 9  # the reference's step 9 -> 10 is wrong

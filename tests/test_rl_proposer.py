@@ -11,7 +11,7 @@ import pytest
 from rl.policy import OnnxPolicy
 from rl.proposer import PolicyProposer
 from service.persistence import decode, encode
-from service.sources import open_dataset
+from sources import open_dataset
 
 POLICY = Path(__file__).resolve().parents[1] / "models" / "lc" / "room_seed3.onnx"
 

@@ -192,7 +192,7 @@ def test_place_and_action_aux_targets_and_a_warm_start_from_a_smaller_map(tmp_pa
 
 def test_the_shipped_init_checkpoint_starts_a_trainer_for_another_map():
     """bench policy-loops and the README's two-pass workflow start from models/lc/config1.init.pt."""
-    from service.lc_cli import INIT_CHECKPOINT, POLICY_DIR
+    from rl.commands import INIT_CHECKPOINT, POLICY_DIR
 
     path = POLICY_DIR / INIT_CHECKPOINT
     shipped = torch.load(path, weights_only=False)

@@ -11,8 +11,8 @@ import pytest
 import service.run
 from service.config import load_settings
 from service.run import run_dataset
-from service.sources import open_dataset
-from service.sources.base import Dataset
+from sources import open_dataset
+from sources.base import Dataset
 
 pytestmark = pytest.mark.integration
 FRAMES = 300

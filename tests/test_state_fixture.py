@@ -14,7 +14,7 @@ from service.config import load_settings
 from service.node import ServiceNode
 from service.protocol import encode_frame
 from service.replay import frame_publisher
-from service.sources import open_dataset
+from sources import open_dataset
 from service.zenoh_session import open_session
 
 FIXTURE = Path(__file__).parent / "fixtures" / "state_v0.1.0"

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from graph.geometry import inverse, relative, rotation_angle
-from service.sources.base import DatasetError
-from service.sources.synthetic import SyntheticDataset, parse_synthetic_spec
+from sources.base import DatasetError
+from sources.synthetic import SyntheticDataset, parse_synthetic_spec
 
 SMALL = "synthetic:room?seed=0&frames=300&width=320&height=240"
 

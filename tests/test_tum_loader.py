@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from service.config import load_settings
-from service.sources import DatasetError, open_dataset
-from graph.metrics import nearest_timestamps
+from sources import DatasetError, open_dataset
+from graph.trajectory import nearest_timestamps
 from tests.conftest import REDKITCHEN, requires_redkitchen
 
 
@@ -63,7 +63,7 @@ def test_tum_directory_with_extensions_loads_frames_odometry_and_detections(tmp_
 
 
 def test_views_drop_the_odometry_or_replace_it_with_the_ground_truth(tmp_path):
-    from service.sources import TruthAsOdometry, WithoutOdometry
+    from sources import TruthAsOdometry, WithoutOdometry
 
     _write_tum(tmp_path)
     with pytest.raises(DatasetError, match="no ground truth"):
@@ -103,7 +103,7 @@ def test_configured_camera_defaults_apply_without_camera_files_and_flags_overrid
 
 def test_flags_a_camera_file_makes_moot_are_reported(tmp_path, caplog):
     _write_tum(tmp_path, odometry=False, detections=False)  # with camera.json
-    with caplog.at_level(logging.WARNING, logger="service.sources.tum"):
+    with caplog.at_level(logging.WARNING, logger="sources.tum"):
         ds = open_dataset(str(tmp_path), {"fx": 300.0, "depth_scale": 1000.0}, {"fx": 700.0})
     assert ds.camera.color.fx == 50 and "--depth-scale, --fx not applied" in caplog.text
 

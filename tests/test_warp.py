@@ -13,7 +13,7 @@ from perception.features import (FeatureConfig, backproject_detection, detection
                                  object_points, support_plane,
                                  feature_from_points)
 from perception.warp import needs_warp, warp_box, warp_depth
-from service.sources import open_dataset
+from sources import open_dataset
 
 K = np.array([[100.0, 0.0, 39.5], [0.0, 100.0, 29.5], [0.0, 0.0, 1.0]])
 

@@ -12,17 +12,17 @@ from gtsam.symbol_shorthand import L, X
 
 from graph.factors import LANDMARK, FactorRecord
 from graph.geometry import relative
-from graph.metrics import trajectory_error
+from evaluation.trajectory_metrics import trajectory_error
 from graph.pose_graph import NoiseSettings, PoseGraph
 from graph.window import WindowedGraph, WindowSettings
-from service.bench import isam2 as sim
+from bench import isam2 as sim
 from service.config import load_settings
 from service.node import ServiceNode
 from service.replay import frame_publisher
 from service.persistence import decode, encode, seal, unseal
-from service.pipeline import Pipeline
+from slam.core import Pipeline
 from service.protocol import encode_frame
-from service.sources import open_dataset
+from sources import open_dataset
 from service.zenoh_session import open_session
 
 

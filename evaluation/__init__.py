@@ -1,0 +1,1 @@
+"""Evaluation against ground truth: trajectory metrics, object metrics, the reference check."""

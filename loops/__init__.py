@@ -1,0 +1,1 @@
+"""Loop closure: place recognition, candidates, geometric verification, acceptance, retraction."""

@@ -1,0 +1,1 @@
+"""The thread-free SLAM core: frames in, poses, objects and loops out."""
