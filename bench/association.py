@@ -14,12 +14,12 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
+from bench.report import markdown_table, record, show_table
 from graph.geometry import inverse, motion_magnitude
 from perception.clustering import ClusterConfig, Clusterer, bhattacharyya_matrix, cluster_labels
 from perception.features import FeatureVector
 from perception.frame import Detection
 from perception.npda import NPDAConfig, assign, associate, association_matrix
-from bench.report import markdown_table, record, show_table
 from sources import ObjectTruth, open_dataset
 
 TABLE_2_1 = "P 89.3-95.7 %, R 65.4-75.8 % (7 TUM / 7-Scenes sequences)"
@@ -29,8 +29,9 @@ _T22 = """96/68 95/58 92/53 89/49 88/39 89/35 - - ; 98/65 96/60 90/52 88/41 89/3
 96/64 92/55 94/49 92/39 91/35 89/33 88/29 84/25 ; 95/65 96/58 97/53 98/45 88/36 92/28 86/29 89/26 ;
 93/58 91/45 92/43 90/37 87/31 88/26 85/21 88/19 ; 93/54 91/40 92/36 90/33 87/28 88/22 85/20 - ;
 95/44 96/37 97/31 98/25 88/15 92/8 86/9 89/6 ; 88/30 89/26 87/19 86/15 88/8 87/5 - 89/6"""
-TABLE_2_2 = [[None if c == "-" else tuple(int(x) for x in c.split("/")) for c in row.split()]
-             for row in _T22.split(";")]
+TABLE_2_2 = [
+    [None if c == "-" else tuple(int(x) for x in c.split("/")) for c in row.split()] for row in _T22.split(";")
+]
 
 
 @dataclass
@@ -116,8 +117,10 @@ def grid_pairs(scene: Scene, per_cell: int) -> dict[tuple[int, int], list[tuple[
             r, c = np.searchsorted(TAU_EDGES, tau) - 1, np.searchsorted(PHI_EDGES, phi) - 1
             if 0 <= r < 8 and 0 <= c < 8 and tau > 0:
                 cells.setdefault((int(r), int(c)), []).append((i, j))
-    return {key: [v[q] for q in np.unique(np.linspace(0, len(v) - 1, min(per_cell, len(v))).round().astype(int))]
-            for key, v in cells.items()}
+    return {
+        key: [v[q] for q in np.unique(np.linspace(0, len(v) - 1, min(per_cell, len(v))).round().astype(int))]
+        for key, v in cells.items()
+    }
 
 
 def ablation_configs(base: NPDAConfig) -> dict[str, NPDAConfig]:
@@ -201,8 +204,11 @@ def synthetic_features(n: int = 2000, objects: int = 25, seed: int = 0) -> list[
     for q in range(n):
         o = q % objects
         var = rng.uniform(0.002, 0.02, 3)
-        out.append(FeatureVector(centres[o] + rng.normal(0, 0.05, 3), np.diag(var), 400, labels[o % 8],
-                                 o * 8 + (q // objects) % 8))
+        out.append(
+            FeatureVector(
+                centres[o] + rng.normal(0, 0.05, 3), np.diag(var), 400, labels[o % 8], o * 8 + (q // objects) % 8
+            )
+        )
     return out
 
 
@@ -222,8 +228,9 @@ def clustering_timing(config: ClusterConfig, repeats: int = 3) -> dict[str, floa
         "distance matrix only (2000 x 2000)": lambda: bhattacharyya_matrix(means, var, labels),
         "global matrix + HDBSCAN, N = 2000": lambda: cluster_labels(feats, replace(config, per_class=False)),
         "per-class matrices + HDBSCAN, N = 2000": lambda: cluster_labels(feats, config),
-        f"Clusterer.recluster (default: per class, N <= {config.max_features} by track pooling)":
-            lambda: recluster(feats),
+        f"Clusterer.recluster (default: per class, N <= {config.max_features} by track pooling)": lambda: recluster(
+            feats
+        ),
         "Clusterer.recluster, all 2000 vectors of one class": lambda: recluster(one_class),
     }
     out: dict[str, float] = {}
@@ -237,8 +244,9 @@ def clustering_timing(config: ClusterConfig, repeats: int = 3) -> dict[str, floa
     return out
 
 
-def run_association_bench(console: Console, seeds: list[int], frames: int, write: Path | None,
-                          per_cell: int = 20) -> dict:
+def run_association_bench(
+    console: Console, seeds: list[int], frames: int, write: Path | None, per_cell: int = 20
+) -> dict:
     """NPDA on consecutive keyframes, the Table 2.2 grid with / without warping, ablation, timing; recorded."""
     base, k = NPDAConfig(), keyframe_step(frames)
     variants = ablation_configs(base)
@@ -269,86 +277,162 @@ def run_association_bench(console: Console, seeds: list[int], frames: int, write
             covisible.setdefault(cell, Counts()).add(count_pairs(scene, pairs, in_view_only))
             oov_depth.setdefault(cell, Counts()).add(count_pairs(scene, pairs, depth_only))
         if not timing:
-            timing["NPDA 10 x 10 (U matrix + gates + assignment)"], timing["NPDA 10 x 10 incl. warping"] = \
-                _npda_10x10(scene, base, k)
+            timing["NPDA 10 x 10 (U matrix + gates + assignment)"], timing["NPDA 10 x 10 incl. warping"] = _npda_10x10(
+                scene, base, k
+            )
         del scene
     timing |= clustering_timing(ClusterConfig())
-    command = "objslam bench association --seeds " + ",".join(map(str, seeds)) + \
-        (f" --frames {frames}" if frames != 300 else "")
-    result = {"consecutive": ablation["default"], "per_seed": per_seed, "keyframe_pairs": n_pairs,
-              "grid_warped": warped, "grid_plain": plain, "grid_covisible": covisible,
-              "grid_out_of_view_depth_only": oov_depth, "ablation": ablation,
-              "timing": timing}
+    command = (
+        "objslam bench association --seeds "
+        + ",".join(map(str, seeds))
+        + (f" --frames {frames}" if frames != 300 else "")
+    )
+    result = {
+        "consecutive": ablation["default"],
+        "per_seed": per_seed,
+        "keyframe_pairs": n_pairs,
+        "grid_warped": warped,
+        "grid_plain": plain,
+        "grid_covisible": covisible,
+        "grid_out_of_view_depth_only": oov_depth,
+        "ablation": ablation,
+        "timing": timing,
+    }
     _record_consecutive(console, result, k, command, write)
-    _record_grid(console, {"with depth warping": warped,
-                           "with depth warping, out-of-view test on depth only with a 0.5 m gap (before)": oov_depth,
-                           "with depth warping, no out-of-view test": covisible, "without depth warping": plain},
-                 per_cell, command, write)
+    _record_grid(
+        console,
+        {
+            "with depth warping": warped,
+            "with depth warping, out-of-view test on depth only with a 0.5 m gap (before)": oov_depth,
+            "with depth warping, no out-of-view test": covisible,
+            "without depth warping": plain,
+        },
+        per_cell,
+        command,
+        write,
+    )
     _record_ablation(console, ablation, k, command, write)
     _record_timing(console, timing, command, write)
     return result
 
 
 def _record_consecutive(console: Console, result: dict, k: int, command: str, write: Path | None) -> None:
-    header = ["scene", "keyframe pairs", "true associations", "precision %", "recall %", "target",
-              "dissertation (Table 2.1)"]
+    header = [
+        "scene",
+        "keyframe pairs",
+        "true associations",
+        "precision %",
+        "recall %",
+        "target",
+        "dissertation (Table 2.1)",
+    ]
     n_pairs = result["keyframe_pairs"]
-    rows = [[f"synthetic room seed {s}", n_pairs[s], c.tp + c.fn, _pct(c.precision), _pct(c.recall), "P >= 97, R >= 85",
-             TABLE_2_1] for s, c in result["per_seed"].items()]
+    rows = [
+        [
+            f"synthetic room seed {s}",
+            n_pairs[s],
+            c.tp + c.fn,
+            _pct(c.precision),
+            _pct(c.recall),
+            "P >= 97, R >= 85",
+            TABLE_2_1,
+        ]
+        for s, c in result["per_seed"].items()
+    ]
     total = result["consecutive"]
-    rows.append(["all", sum(n_pairs.values()), total.tp + total.fn, _pct(total.precision), _pct(total.recall),
-                 "P >= 97, R >= 85", TABLE_2_1])
+    rows.append(
+        [
+            "all",
+            sum(n_pairs.values()),
+            total.tp + total.fn,
+            _pct(total.precision),
+            _pct(total.recall),
+            "P >= 97, R >= 85",
+            TABLE_2_1,
+        ]
+    )
     show_table(console, "NPDA on consecutive keyframes", header, rows)
     cfg = NPDAConfig()
-    notes = (f"Keyframes every {k} frames (~{2 * k} cm and ~{1.4 * k:.0f} degrees apart). True poses for warping "
-             f"and the box gate. A true association = same instance id in both keyframes (false-positive "
-             f"detections have id 0 and count as errors when associated). Defaults: alpha {cfg.alpha}, "
-             f"{cfg.max_samples} samples per box, class gate, one-to-one assignment, box gate IoU >= {cfg.min_iou}, "
-             f"warping above {cfg.warp_tau} m / {cfg.warp_phi} rad.")
-    record("association", "NPDA association on consecutive keyframes (Table 2.1)", command,
-           markdown_table(header, rows), notes, write)
+    notes = (
+        f"Keyframes every {k} frames (~{2 * k} cm and ~{1.4 * k:.0f} degrees apart). True poses for warping "
+        f"and the box gate. A true association = same instance id in both keyframes (false-positive "
+        f"detections have id 0 and count as errors when associated). Defaults: alpha {cfg.alpha}, "
+        f"{cfg.max_samples} samples per box, class gate, one-to-one assignment, box gate IoU >= {cfg.min_iou}, "
+        f"warping above {cfg.warp_tau} m / {cfg.warp_phi} rad."
+    )
+    record(
+        "association",
+        "NPDA association on consecutive keyframes (Table 2.1)",
+        command,
+        markdown_table(header, rows),
+        notes,
+        write,
+    )
 
 
-def _record_grid(console: Console, variants: dict[str, dict], per_cell: int, command: str,
-                 write: Path | None) -> None:
+def _record_grid(console: Console, variants: dict[str, dict], per_cell: int, command: str, write: Path | None) -> None:
     parts = []
     for title, cells in variants.items():
         md, rows, filled, p_ok, r_ok = _grid_table(cells)
-        show_table(console, f"NPDA over the Table 2.2 grid, {title}",
-              ["tau \\ phi"] + [f"<= {PHI_EDGES[c + 1]:g}" for c in range(8)], rows)
-        parts.append(f"**{title}**: {filled} cells with data; precision >= 92 % in {p_ok}, "
-                     f"recall >= 1.3 x Table 2.2 in {r_ok}.\n\n{md}")
-    notes = (f"Each cell: ours precision/recall % (n = true associations) [Table 2.2 precision/recall, - = no "
-             f"data]; '(miss)' marks a cell below a target; P n/a = nothing associated (counted as meeting the "
-             f"precision target). Pairs of frames of each sequence binned by true translation tau (m) and "
-             f"rotation phi (rad, eq. 2.16) into (previous edge, edge]; at most {per_cell} pairs per cell per seed, "
-             f"evenly spread. Empty cells: the orbit ties rotation to translation. Without warping the box gate "
-             f"still uses boxes moved by the true pose; only the depth is not warped. Out-of-view test: a previous box "
-             f"whose object points mostly leave the current image is also tested with those points' depths, and "
-             f"their heights (camera y; `NPDAConfig.out_of_view_height`), in the current camera, against same-class "
-             f"current boxes within {NPDAConfig().out_of_view_gap_m:g} m (`NPDAConfig.out_of_view_gap_m`): two "
-             f"views of one object that show different parts of it differ in depth, hardly in height.")
-    record("association-grid", "NPDA with and without depth warping over Table 2.2's motion grid", command,
-           "\n\n".join(parts), notes, write)
+        show_table(
+            console,
+            f"NPDA over the Table 2.2 grid, {title}",
+            ["tau \\ phi"] + [f"<= {PHI_EDGES[c + 1]:g}" for c in range(8)],
+            rows,
+        )
+        parts.append(
+            f"**{title}**: {filled} cells with data; precision >= 92 % in {p_ok}, "
+            f"recall >= 1.3 x Table 2.2 in {r_ok}.\n\n{md}"
+        )
+    notes = (
+        f"Each cell: ours precision/recall % (n = true associations) [Table 2.2 precision/recall, - = no "
+        f"data]; '(miss)' marks a cell below a target; P n/a = nothing associated (counted as meeting the "
+        f"precision target). Pairs of frames of each sequence binned by true translation tau (m) and "
+        f"rotation phi (rad, eq. 2.16) into (previous edge, edge]; at most {per_cell} pairs per cell per seed, "
+        f"evenly spread. Empty cells: the orbit ties rotation to translation. Without warping the box gate "
+        f"still uses boxes moved by the true pose; only the depth is not warped. Out-of-view test: a previous box "
+        f"whose object points mostly leave the current image is also tested with those points' depths, and "
+        f"their heights (camera y; `NPDAConfig.out_of_view_height`), in the current camera, against same-class "
+        f"current boxes within {NPDAConfig().out_of_view_gap_m:g} m (`NPDAConfig.out_of_view_gap_m`): two "
+        f"views of one object that show different parts of it differ in depth, hardly in height."
+    )
+    record(
+        "association-grid",
+        "NPDA with and without depth warping over Table 2.2's motion grid",
+        command,
+        "\n\n".join(parts),
+        notes,
+        write,
+    )
 
 
-def _record_ablation(console: Console, ablation: dict[str, Counts], k: int, command: str,
-                     write: Path | None) -> None:
+def _record_ablation(console: Console, ablation: dict[str, Counts], k: int, command: str, write: Path | None) -> None:
     header = ["variant", "precision %", "recall %", "TP", "FP", "FN"]
     rows = [[name, _pct(c.precision), _pct(c.recall), c.tp, c.fp, c.fn] for name, c in ablation.items()]
     show_table(console, "NPDA ablation (consecutive keyframes)", header, rows)
-    record("association-ablation", "NPDA ablation on consecutive keyframes", command, markdown_table(header, rows),
-           f"One change at a time from the defaults; keyframes every {k} frames, true poses.", write)
+    record(
+        "association-ablation",
+        "NPDA ablation on consecutive keyframes",
+        command,
+        markdown_table(header, rows),
+        f"One change at a time from the defaults; keyframes every {k} frames, true poses.",
+        write,
+    )
 
 
 def _record_timing(console: Console, timing: dict[str, float], command: str, write: Path | None) -> None:
-    targets = {name: ("<= 5 ms" if name.startswith("NPDA 10 x 10 (") else "<= 100 ms")
-               for name in timing if name.startswith(("NPDA 10 x 10 (", "Clusterer"))}
+    targets = {
+        name: ("<= 5 ms" if name.startswith("NPDA 10 x 10 (") else "<= 100 ms")
+        for name in timing
+        if name.startswith(("NPDA 10 x 10 (", "Clusterer"))
+    }
     header = ["step", "median ms", "target"]
     rows = [[name, f"{ms:.1f}", targets.get(name, "")] for name, ms in timing.items()]
     show_table(console, "NPDA and clustering timing", header, rows)
-    notes = ("NPDA: 10 previous x 10 current boxes of one class (no class pruning) on 640x480 synthetic depth; the "
-             "second row adds warping the previous depth and boxes. Clustering: 2,000 feature vectors of 25 "
-             "objects in 8 classes (last row: all relabelled one class, the worst case for per-class "
-             "clustering); the Clusterer rows include track pooling, HDBSCAN, cluster merging and ellipsoids.")
+    notes = (
+        "NPDA: 10 previous x 10 current boxes of one class (no class pruning) on 640x480 synthetic depth; the "
+        "second row adds warping the previous depth and boxes. Clustering: 2,000 feature vectors of 25 "
+        "objects in 8 classes (last row: all relabelled one class, the worst case for per-class "
+        "clustering); the Clusterer rows include track pooling, HDBSCAN, cluster merging and ellipsoids."
+    )
     record("association-timing", "NPDA and re-clustering timing", command, markdown_table(header, rows), notes, write)

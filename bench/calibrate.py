@@ -9,10 +9,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from graph.geometry import pose_from_tum, relative
-from evaluation.trajectory_metrics import trajectory_error
 from evaluation.depth_calibration import DepthScaleEstimate, estimate_depth_scale
 from evaluation.reference_check import PairCheck, check_pair, depth_residual, repaired
+from evaluation.trajectory_metrics import trajectory_error
+from graph.geometry import pose_from_tum, relative
 from sources import Dataset, truth_per_frame
 
 
@@ -33,8 +33,9 @@ def _pairs(dataset: Dataset, start: int, stop: int | None, gap: int, stride: int
     return pairs, stop
 
 
-def calibrate_depth_scale(dataset: Dataset, start: int = 0, stop: int | None = None, gap: int = 15,
-                          stride: int = 9) -> DepthScaleEstimate:
+def calibrate_depth_scale(
+    dataset: Dataset, start: int = 0, stop: int | None = None, gap: int = 15, stride: int = 9
+) -> DepthScaleEstimate:
     """The depth scale of ``dataset`` against its ground truth over frames [start, stop)."""
     truth = truth_per_frame(dataset)
     pairs, _ = _pairs(dataset, start, stop, gap, stride)
@@ -59,8 +60,15 @@ class ReferenceReport:
     repair_ate_m: float | None
 
 
-def check_reference(dataset: Dataset, start: int = 0, stop: int | None = None, gap: int = 1, stride: int = 1,
-                    margin_m: float = 0.005, reference: np.ndarray | None = None) -> ReferenceReport:
+def check_reference(
+    dataset: Dataset,
+    start: int = 0,
+    stop: int | None = None,
+    gap: int = 1,
+    stride: int = 1,
+    margin_m: float = 0.005,
+    reference: np.ndarray | None = None,
+) -> ReferenceReport:
     """The reference trajectory of ``dataset`` (its ground truth unless ``reference``, (N, 4, 4), is given)
     against its own depth, over pairs (i, i + gap) of frames [start, stop)."""
     reference = truth_per_frame(dataset) if reference is None else reference
@@ -100,8 +108,10 @@ def check_loops(dataset: Dataset, loops: list[dict], reference: np.ndarray | Non
     for record in (r for r in loops if r.get("accepted") and "relative_pose" in r):
         q, m = record.get("query_frame"), record.get("match_frame")
         if not all(isinstance(k, int) and 0 <= k < len(dataset) for k in (q, m)):
-            raise ValueError(f"loop record {q!r} -> {m!r}: frames must be indices of this dataset's "
-                             f"{len(dataset)} frames (loops.json of a run of another dataset?)")
+            raise ValueError(
+                f"loop record {q!r} -> {m!r}: frames must be indices of this dataset's "
+                f"{len(dataset)} frames (loops.json of a run of another dataset?)"
+            )
         src, dst = dataset.frame(q).depth_m(), dataset.frame(m).depth_m()
         check = check_pair(q, m, src, dst, K, relative(reference[m], reference[q]))
         out.append(LoopCheck(check, depth_residual(src, dst, K, pose_from_tum(np.asarray(record["relative_pose"])))))

@@ -15,9 +15,9 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from bench.report import markdown_table, record
 from perception.detector import Detector, DetectorConfig
 from perception.frame import Detection
-from bench.report import markdown_table, record
 from sources import open_dataset
 
 log = logging.getLogger(__name__)
@@ -41,11 +41,17 @@ class ModelRun:
 
     def summary(self) -> dict:
         ms = np.asarray(self.ms)
-        return {"kind": self.kind, "model": self.name or self.kind, "frames": self.frames,
-                "p50_ms": float(np.percentile(ms, 50)),
-                "p95_ms": float(np.percentile(ms, 95)), "fps": 1000.0 / float(ms.mean()),
-                "cpu_ms": float(np.median(self.cpu_ms)),
-                "detections": int(sum(self.counts.values())), "counts": dict(self.counts.most_common())}
+        return {
+            "kind": self.kind,
+            "model": self.name or self.kind,
+            "frames": self.frames,
+            "p50_ms": float(np.percentile(ms, 50)),
+            "p95_ms": float(np.percentile(ms, 95)),
+            "fps": 1000.0 / float(ms.mean()),
+            "cpu_ms": float(np.median(self.cpu_ms)),
+            "detections": int(sum(self.counts.values())),
+            "counts": dict(self.counts.most_common()),
+        }
 
 
 def _colour(label: str) -> tuple[int, int, int]:
@@ -69,8 +75,9 @@ def annotate(rgb: np.ndarray, dets: list[Detection], width: int, caption: str = 
         cv2.rectangle(tile, (x1, ty - th - 2), (x1 + tw + 2, ty), colour, -1)
         cv2.putText(tile, text, (x1 + 1, ty - 2), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
     if caption:
-        cv2.putText(tile, caption, (3, tile.shape[0] - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1,
-                    cv2.LINE_AA)
+        cv2.putText(
+            tile, caption, (3, tile.shape[0] - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA
+        )
     return tile
 
 
@@ -81,7 +88,7 @@ def contact_sheet(tiles: list[np.ndarray], columns: int) -> np.ndarray:
     sheet = np.zeros((rows * h, columns * w, 3), np.uint8)
     for i, tile in enumerate(tiles):
         r, c = divmod(i, columns)
-        sheet[r * h:(r + 1) * h, c * w:(c + 1) * w] = tile
+        sheet[r * h : (r + 1) * h, c * w : (c + 1) * w] = tile
     return sheet
 
 
@@ -92,8 +99,9 @@ def sheet_path(kind: str, first: bool) -> Path:
 
 def model_name(config: DetectorConfig) -> str:
     """The model's kind, plus the input when CenterNet runs on an input fitted to the image (``fit_aspect``)."""
-    return config.kind + (" (fit_aspect: 512 x 384 input for 4:3)" if config.kind == "centernet" and config.fit_aspect
-                          else "")
+    return config.kind + (
+        " (fit_aspect: 512 x 384 input for 4:3)" if config.kind == "centernet" and config.fit_aspect else ""
+    )
 
 
 def measure(dataset_dir: str, every: int, configs: list[DetectorConfig]) -> list[ModelRun]:
@@ -130,22 +138,48 @@ def _write_sheet(run: ModelRun, path: Path) -> Path:
     return path
 
 
-def run_detector_bench(console: Console, dataset_dir: str, every: int, write: Path | None,
-                       configs: list[DetectorConfig] | None = None) -> dict:
+def run_detector_bench(
+    console: Console, dataset_dir: str, every: int, write: Path | None, configs: list[DetectorConfig] | None = None
+) -> dict:
     """Measure each detector (default: both shipped models), print and record the tables, save contact sheets."""
-    configs = configs or [DetectorConfig(kind="centernet"), DetectorConfig(kind="nanodet"),
-                          DetectorConfig(kind="centernet", fit_aspect=True)]
+    configs = configs or [
+        DetectorConfig(kind="centernet"),
+        DetectorConfig(kind="nanodet"),
+        DetectorConfig(kind="centernet", fit_aspect=True),
+    ]
     started = time.monotonic()
     runs = measure(dataset_dir, every, configs)
-    sheets = [_write_sheet(run, sheet_path(run.kind, i == 0)) for i, run in enumerate(runs)
-              if run.name == run.kind]  # one sheet per shipped model, as it runs by default
+    sheets = [
+        _write_sheet(run, sheet_path(run.kind, i == 0)) for i, run in enumerate(runs) if run.name == run.kind
+    ]  # one sheet per shipped model, as it runs by default
     results = [run.summary() for run in runs]
-    header = ["model", "frames", "ms/frame p50", "ms/frame p95", "frames/s", "CPU ms/frame p50", "detections",
-              "per frame"]
-    rows = [[r["model"], r["frames"], f"{r['p50_ms']:.1f}", f"{r['p95_ms']:.1f}", f"{r['fps']:.1f}",
-             f"{r['cpu_ms']:.0f}", r["detections"], f"{r['detections'] / r['frames']:.2f}"] for r in results]
-    labels = sorted({label for r in results for label in r["counts"]},
-                    key=lambda label: -sum(r["counts"].get(label, 0) for r in results))
+    header = [
+        "model",
+        "frames",
+        "ms/frame p50",
+        "ms/frame p95",
+        "frames/s",
+        "CPU ms/frame p50",
+        "detections",
+        "per frame",
+    ]
+    rows = [
+        [
+            r["model"],
+            r["frames"],
+            f"{r['p50_ms']:.1f}",
+            f"{r['p95_ms']:.1f}",
+            f"{r['fps']:.1f}",
+            f"{r['cpu_ms']:.0f}",
+            r["detections"],
+            f"{r['detections'] / r['frames']:.2f}",
+        ]
+        for r in results
+    ]
+    labels = sorted(
+        {label for r in results for label in r["counts"]},
+        key=lambda label: -sum(r["counts"].get(label, 0) for r in results),
+    )
     class_rows = [[label] + [r["counts"].get(label, 0) for r in results] for label in labels]
     table = Table(title=f"detector on every {every}th frame of {dataset_dir}")
     for h in header:
@@ -153,21 +187,36 @@ def run_detector_bench(console: Console, dataset_dir: str, every: int, write: Pa
     for row in rows:
         table.add_row(*map(str, row))
     console.print(table)
-    console.print("detections per class: " + "; ".join(
-        f"{r['model']}: " + ", ".join(f"{k} {v}" for k, v in r["counts"].items()) for r in results))
-    thresholds = "; ".join(f"{c.kind}: floor {c.thresholds()[0]}, per class {c.thresholds()[1] or 'none'}"
-                           for c in {c.kind: c for c in configs}.values())
+    console.print(
+        "detections per class: "
+        + "; ".join(f"{r['model']}: " + ", ".join(f"{k} {v}" for k, v in r["counts"].items()) for r in results)
+    )
+    thresholds = "; ".join(
+        f"{c.kind}: floor {c.thresholds()[0]}, per class {c.thresholds()[1] or 'none'}"
+        for c in {c.kind: c for c in configs}.values()
+    )
     load = os.getloadavg()[0]
-    notes = (f"Detector only (pre-processing, onnxruntime with {configs[0].threads} intra-op threads, decoding, "
-             f"NMS), models interleaved frame by frame after one warm-up frame; frames/s = 1000 / mean ms; "
-             f"CPU ms counts all threads. "
-             f"1-minute load average at the end: {load:.1f} on {os.cpu_count()} cores (other work inflates "
-             f"the wall-clock figures). Thresholds: {thresholds}. "
-             f"Contact sheets: {', '.join(f'`{p.as_posix()}`' for p in sheets)}.")
-    tables = markdown_table(header, rows) + "\n\nDetections per class:\n\n" + markdown_table(
-        ["class"] + [r["model"] for r in results], class_rows)
-    path = record("detector", "Object detector on real frames",
-                  f"objslam bench detector --dataset '{dataset_dir}' --every {every}", tables, notes, write)
+    notes = (
+        f"Detector only (pre-processing, onnxruntime with {configs[0].threads} intra-op threads, decoding, "
+        f"NMS), models interleaved frame by frame after one warm-up frame; frames/s = 1000 / mean ms; "
+        f"CPU ms counts all threads. "
+        f"1-minute load average at the end: {load:.1f} on {os.cpu_count()} cores (other work inflates "
+        f"the wall-clock figures). Thresholds: {thresholds}. "
+        f"Contact sheets: {', '.join(f'`{p.as_posix()}`' for p in sheets)}."
+    )
+    tables = (
+        markdown_table(header, rows)
+        + "\n\nDetections per class:\n\n"
+        + markdown_table(["class"] + [r["model"] for r in results], class_rows)
+    )
+    path = record(
+        "detector",
+        "Object detector on real frames",
+        f"objslam bench detector --dataset '{dataset_dir}' --every {every}",
+        tables,
+        notes,
+        write,
+    )
     console.print(f"recorded in {path}; contact sheets {', '.join(map(str, sheets))}")
     log.info("detector bench took %.0f s", time.monotonic() - started)
     return {"dataset": dataset_dir, "every": every, "models": results, "sheets": [str(p) for p in sheets]}

@@ -13,10 +13,10 @@ import cv2
 import numpy as np
 from rich.console import Console
 
+from bench.report import markdown_table, record
 from evaluation.trajectory_metrics import trajectory_error
 from perception.frontend import KeyframePolicy, VisualOdometry
 from perception.odometry import Features
-from bench.report import markdown_table, record
 from sources import open_dataset
 
 
@@ -28,8 +28,9 @@ def _sift(vo: VisualOdometry) -> None:
     def extract(frame) -> Features:
         kps, desc = sift.detectAndCompute(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY), None)
         px = np.array([k.pt for k in kps], dtype=np.float32).reshape(-1, 2)
-        return Features(px, desc if desc is not None else np.zeros((0, 128), np.float32),
-                        extractor._points(px, frame.depth_m()))
+        return Features(
+            px, desc if desc is not None else np.zeros((0, 128), np.float32), extractor._points(px, frame.depth_m())
+        )
 
     extractor.extract = extract
     vo.estimator.matcher = cv2.BFMatcher(cv2.NORM_L2)
@@ -42,8 +43,11 @@ def measure(dataset: str, frames: int) -> list[list[object]]:
     images = [data.frame(i) for i in range(n)]
     gt = data.ground_truth.poses[:n]
     rows = []
-    for name, icp, sift in (("ORB + PnP-RANSAC + LM", False, False), ("ORB + PnP + depth ICP at keyframes", True, False),
-                            ("SIFT + PnP-RANSAC + LM", False, True)):
+    for name, icp, sift in (
+        ("ORB + PnP-RANSAC + LM", False, False),
+        ("ORB + PnP + depth ICP at keyframes", True, False),
+        ("SIFT + PnP-RANSAC + LM", False, True),
+    ):
         vo = VisualOdometry(data.camera, KeyframePolicy(icp=icp))
         if sift:
             _sift(vo)
@@ -51,8 +55,17 @@ def measure(dataset: str, frames: int) -> list[list[object]]:
         poses = np.stack([vo.track(f).pose for f in images])
         ms = (time.perf_counter() - t0) / n * 1000
         err = trajectory_error(poses, gt)
-        rows.append([name, n, f"{err.ate_rmse_m * 100:.2f}", f"{err.rpe_trans_rmse_m * 100:.3f}",
-                     f"{err.rpe_rot_rmse_deg:.3f}", f"{ms:.1f}", vo.lost_count])
+        rows.append(
+            [
+                name,
+                n,
+                f"{err.ate_rmse_m * 100:.2f}",
+                f"{err.rpe_trans_rmse_m * 100:.3f}",
+                f"{err.rpe_rot_rmse_deg:.3f}",
+                f"{ms:.1f}",
+                vo.lost_count,
+            ]
+        )
     return rows
 
 
@@ -60,10 +73,18 @@ def run_frontends_bench(console: Console, dataset: str, frames: int, write: Path
     rows = measure(dataset, frames)
     header = ["front end", "frames", "ATE (cm)", "RPE (cm/frame)", "RPE (deg/frame)", "ms/frame", "lost"]
     console.print(markdown_table(header, rows))
-    notes = ("Front end alone (no graph), frame to keyframe, on the first frames of the sequence. ORB + PnP is the "
-             "default odometry: most accurate and fastest here. Depth ICP halves the per-frame RPE when applied to "
-             "every frame but biases keyframe-to-keyframe motion on this Kinect data; the service applies it to "
-             "keyframe factors and skip edges, where it measured better once loops close (see the odometry table).")
-    record("frontends", "Odometry front-end candidates", f"objslam bench frontends --dataset {dataset} --frames {frames}",
-           markdown_table(header, rows), notes, write)
+    notes = (
+        "Front end alone (no graph), frame to keyframe, on the first frames of the sequence. ORB + PnP is the "
+        "default odometry: most accurate and fastest here. Depth ICP halves the per-frame RPE when applied to "
+        "every frame but biases keyframe-to-keyframe motion on this Kinect data; the service applies it to "
+        "keyframe factors and skip edges, where it measured better once loops close (see the odometry table)."
+    )
+    record(
+        "frontends",
+        "Odometry front-end candidates",
+        f"objslam bench frontends --dataset {dataset} --frames {frames}",
+        markdown_table(header, rows),
+        notes,
+        write,
+    )
     return rows

@@ -24,10 +24,10 @@ import numpy as np
 from rich.console import Console
 from scipy.spatial.transform import Rotation
 
+from bench.report import load_note, markdown_table, record, show_table
 from graph.geometry import relative
 from graph.pose_graph import NoiseSettings, PoseGraph
 from graph.window import WindowedGraph, WindowSettings
-from bench.report import load_note, markdown_table, record, show_table
 
 STEP_M = 0.1  # distance between keyframes
 ROOM_SPACING_M, ROOM_COLUMNS, LAP_RADIUS_M, WALL_RADIUS_M = 6.0, 7, 1.5, 2.8
@@ -69,8 +69,9 @@ class Building:
             else:
                 i = len(rooms)
                 row, col = divmod(i, ROOM_COLUMNS)
-                room = np.array([(col if row % 2 == 0 else ROOM_COLUMNS - 1 - col) * ROOM_SPACING_M,
-                                 row * ROOM_SPACING_M, 1.0])
+                room = np.array(
+                    [(col if row % 2 == 0 else ROOM_COLUMNS - 1 - col) * ROOM_SPACING_M, row * ROOM_SPACING_M, 1.0]
+                )
                 rooms.append(room)
             start = float(rng.uniform(0, 2 * math.pi))
             entry = room + LAP_RADIUS_M * np.array([math.cos(start), math.sin(start), 0.0])
@@ -102,9 +103,14 @@ def _walls(rooms: list[np.ndarray], n: int, rng: np.random.Generator) -> np.ndar
     room = np.arange(n) % len(rooms)
     angle = rng.uniform(0, 2 * math.pi, n)
     height = rng.uniform(-0.5, 0.8, n)
-    return np.stack([np.array(rooms)[room, 0] + WALL_RADIUS_M * np.cos(angle),
-                     np.array(rooms)[room, 1] + WALL_RADIUS_M * np.sin(angle),
-                     np.array(rooms)[room, 2] + height], axis=1)
+    return np.stack(
+        [
+            np.array(rooms)[room, 0] + WALL_RADIUS_M * np.cos(angle),
+            np.array(rooms)[room, 1] + WALL_RADIUS_M * np.sin(angle),
+            np.array(rooms)[room, 2] + height,
+        ],
+        axis=1,
+    )
 
 
 def _noisy(T: np.ndarray, sigma_m: float, sigma_deg: float, rng: np.random.Generator) -> np.ndarray:
@@ -114,8 +120,15 @@ def _noisy(T: np.ndarray, sigma_m: float, sigma_deg: float, rng: np.random.Gener
     return T @ E
 
 
-def simulate(n_poses: int, n_landmarks: int, noise: NoiseSettings, window: WindowSettings | None, seed: int = 0,
-             returns: bool = True, loops_and_landmarks: bool = True) -> dict:
+def simulate(
+    n_poses: int,
+    n_landmarks: int,
+    noise: NoiseSettings,
+    window: WindowSettings | None,
+    seed: int = 0,
+    returns: bool = True,
+    loops_and_landmarks: bool = True,
+) -> dict:
     """Build the graph keyframe by keyframe; per-update and per-keyframe timings and what went in.
 
     ``window`` None: the whole graph in one iSAM2 (``PoseGraph``), else the service's ``WindowedGraph``, flushed
@@ -134,8 +147,9 @@ def simulate(n_poses: int, n_landmarks: int, noise: NoiseSettings, window: Windo
     return result
 
 
-def _build(graph: PoseGraph | WindowedGraph, world: Building, rng: np.random.Generator,
-           loops_and_landmarks: bool) -> dict:
+def _build(
+    graph: PoseGraph | WindowedGraph, world: Building, rng: np.random.Generator, loops_and_landmarks: bool
+) -> dict:
     seconds = graph.timings  # the same list through rolls (each new window appends to it)
     for j in range(len(world.landmarks)):
         graph.add_landmark(j)
@@ -170,12 +184,22 @@ def _build(graph: PoseGraph | WindowedGraph, world: Building, rng: np.random.Gen
         graph.flush()
     error = np.linalg.norm(graph.poses()[:, :3, 3] - np.array(world.poses)[:, :3, 3], axis=1)
     latencies = np.array(getattr(graph, "solve_latencies", []))
-    return {"poses": graph.num_keyframes, "landmarks": graph.num_landmarks, "factors": graph.num_factors,
-            "loops": loops, "observations": observations, "update_s": update_s,
-            "keyframe_s": np.array(per_keyframe), "updates_per_keyframe": np.array(updates_per_keyframe),
-            "total_s": total_s, "flush_s": time.perf_counter() - t0, "ate_m": float(np.sqrt(np.mean(error ** 2))),
-            "factorization": graph.factorization, "solves": len(latencies),
-            "solve_s": latencies if len(latencies) else None}
+    return {
+        "poses": graph.num_keyframes,
+        "landmarks": graph.num_landmarks,
+        "factors": graph.num_factors,
+        "loops": loops,
+        "observations": observations,
+        "update_s": update_s,
+        "keyframe_s": np.array(per_keyframe),
+        "updates_per_keyframe": np.array(updates_per_keyframe),
+        "total_s": total_s,
+        "flush_s": time.perf_counter() - t0,
+        "ate_m": float(np.sqrt(np.mean(error**2))),
+        "factorization": graph.factorization,
+        "solves": len(latencies),
+        "solve_s": latencies if len(latencies) else None,
+    }
 
 
 def _cell(T: np.ndarray) -> tuple[int, int]:
@@ -186,8 +210,9 @@ def _revisit(poses: list[np.ndarray], cells: dict, k: int) -> int | None:
     """The oldest keyframe at least LOOP_MIN_AGE old within the loop radius and angle of keyframe k."""
     T = poses[k]
     cx, cy = _cell(T)
-    near = sorted(i for dx in (-1, 0, 1) for dy in (-1, 0, 1) for i in cells.get((cx + dx, cy + dy), ())
-                  if i <= k - LOOP_MIN_AGE)
+    near = sorted(
+        i for dx in (-1, 0, 1) for dy in (-1, 0, 1) for i in cells.get((cx + dx, cy + dy), ()) if i <= k - LOOP_MIN_AGE
+    )
     for i in near:
         rel = relative(poses[i], T)
         angle = math.degrees(np.linalg.norm(Rotation.from_matrix(rel[:3, :3]).as_rotvec()))
@@ -200,23 +225,28 @@ def _in_view(T: np.ndarray, landmarks: np.ndarray, rng: np.random.Generator) -> 
     """Up to OBSERVE_MAX landmarks in the camera's field of view and range, with noisy camera-frame positions."""
     inv = np.linalg.inv(T)
     p = landmarks @ inv[:3, :3].T + inv[:3, 3]
-    visible = np.nonzero((p[:, 2] > 0.3) & (np.linalg.norm(p, axis=1) < OBSERVE_RANGE_M)
-                         & (np.abs(p[:, 0]) < 0.6 * p[:, 2]) & (np.abs(p[:, 1]) < 0.5 * p[:, 2]))[0]
+    visible = np.nonzero(
+        (p[:, 2] > 0.3)
+        & (np.linalg.norm(p, axis=1) < OBSERVE_RANGE_M)
+        & (np.abs(p[:, 0]) < 0.6 * p[:, 2])
+        & (np.abs(p[:, 1]) < 0.5 * p[:, 2])
+    )[0]
     visible = visible[np.argsort(p[visible, 2])][:OBSERVE_MAX]
     return [(int(j), p[j] + rng.normal(0, LANDMARK_SIGMA_M, 3)) for j in visible]
 
 
 def window_mean(seconds: np.ndarray, centre: int, half: int = 100) -> float:
     """Mean over items [centre - half, centre + half), clipped to the run."""
-    return float(np.mean(seconds[max(0, centre - half):min(len(seconds), centre + half)]))
+    return float(np.mean(seconds[max(0, centre - half) : min(len(seconds), centre + half)]))
 
 
 def growth(seconds: np.ndarray, n_poses: int, small: int, large: int) -> float:
     """t(large) / t(small): mean time around ``large`` keyframes over mean time around ``small`` (items are
     keyframes, or updates spread over the run in keyframe order)."""
     scale = len(seconds) / n_poses
-    return window_mean(seconds, int(large * scale), int(100 * scale)) / window_mean(seconds, int(small * scale),
-                                                                                   int(100 * scale))
+    return window_mean(seconds, int(large * scale), int(100 * scale)) / window_mean(
+        seconds, int(small * scale), int(100 * scale)
+    )
 
 
 def _ms(seconds: np.ndarray) -> str:
@@ -238,10 +268,15 @@ class Variant:
 
     def params(self) -> str:
         n, w = self.noise, self.window
-        where = "whole graph in one iSAM2" if w is None else \
-            f"window {w.window_keyframes} + {w.window_step} keyframes, whole graph in a child process"
-        return (f"{where}; relinearizeThreshold {n.relinearize_threshold:g}, relinearizeSkip {n.relinearize_skip}, "
-                f"partial relinearization check {'on' if n.partial_relinearization_check else 'off'}")
+        where = (
+            "whole graph in one iSAM2"
+            if w is None
+            else f"window {w.window_keyframes} + {w.window_step} keyframes, whole graph in a child process"
+        )
+        return (
+            f"{where}; relinearizeThreshold {n.relinearize_threshold:g}, relinearizeSkip {n.relinearize_skip}, "
+            f"partial relinearization check {'on' if n.partial_relinearization_check else 'off'}"
+        )
 
 
 def variants() -> list[Variant]:
@@ -251,10 +286,12 @@ def variants() -> list[Variant]:
 
     settings = load_settings().graph
     noise, window = from_settings(NoiseSettings, settings), from_settings(WindowSettings, settings)
-    return [Variant("**service configuration**", noise, window, repeats=5),
-            Variant("whole graph in one iSAM2 (before the window)", noise, None),
-            Variant("service, no returns to earlier rooms", noise, window, returns=False),
-            Variant("service, odometry chain only", noise, window, loops_and_landmarks=False)]
+    return [
+        Variant("**service configuration**", noise, window, repeats=5),
+        Variant("whole graph in one iSAM2 (before the window)", noise, None),
+        Variant("service, no returns to earlier rooms", noise, window, returns=False),
+        Variant("service, odometry chain only", noise, window, loops_and_landmarks=False),
+    ]
 
 
 def run_isam2_bench(console: Console, poses: int, landmarks: int, seed: int, write: Path | None) -> list[dict]:
@@ -266,10 +303,14 @@ def run_isam2_bench(console: Console, poses: int, landmarks: int, seed: int, wri
         for _ in range(v.repeats):
             load_before = os.getloadavg()[0]
             r = simulate(poses, landmarks, v.noise, v.window, seed, v.returns, v.loops_and_landmarks)
-            r.update(variant=v.name, params=v.params(), load=(load_before + os.getloadavg()[0]) / 2,
-                     ratio=growth(r["keyframe_s"], poses, small, large),
-                     ratio_updates=growth(r["update_s"], poses, small, large),
-                     p95_ms=float(np.percentile(r["update_s"] * 1e3, 95)))
+            r.update(
+                variant=v.name,
+                params=v.params(),
+                load=(load_before + os.getloadavg()[0]) / 2,
+                ratio=growth(r["keyframe_s"], poses, small, large),
+                ratio_updates=growth(r["update_s"], poses, small, large),
+                p95_ms=float(np.percentile(r["update_s"] * 1e3, 95)),
+            )
             runs.append(r)
             console.print(f"{v.name}: update p95 {r['p95_ms']:.2f} ms, t({large})/t({small}) {r['ratio']:.2f}")
         runs.sort(key=lambda r: r["ratio"])
@@ -284,48 +325,79 @@ def run_isam2_bench(console: Console, poses: int, landmarks: int, seed: int, wri
         ("ISAM2.update calls; factorization at the end", lambda r: f"{len(r['update_s'])}; {r['factorization']}", ""),
         ("**update p50 / p95 / max (ms)**", lambda r: _ms(r["update_s"]), f"p95 <= {P95_TARGET_MS:.0f}"),
         ("per keyframe p50 / p95 / max (ms)", lambda r: _ms(r["keyframe_s"]), ""),
-        (f"mean per keyframe around {small} / {large} poses (ms)",
-         lambda r: f"{window_mean(r['keyframe_s'], small) * 1e3:.2f} / {window_mean(r['keyframe_s'], large) * 1e3:.2f}",
-         ""),
-        (f"**t({large}) / t({small}), per keyframe**", lambda r: f"{r['ratio']:.2f}" + (
-            f" (median of {len(r['ratios'])} runs: {', '.join(f'{x:.2f}' for x in r['ratios'])})"
-            if len(r["ratios"]) > 1 else ""), f"<= {RATIO_TARGET:g}"),
+        (
+            f"mean per keyframe around {small} / {large} poses (ms)",
+            lambda r: (
+                f"{window_mean(r['keyframe_s'], small) * 1e3:.2f} / {window_mean(r['keyframe_s'], large) * 1e3:.2f}"
+            ),
+            "",
+        ),
+        (
+            f"**t({large}) / t({small}), per keyframe**",
+            lambda r: (
+                f"{r['ratio']:.2f}"
+                + (
+                    f" (median of {len(r['ratios'])} runs: {', '.join(f'{x:.2f}' for x in r['ratios'])})"
+                    if len(r["ratios"]) > 1
+                    else ""
+                )
+            ),
+            f"<= {RATIO_TARGET:g}",
+        ),
         (f"t({large}) / t({small}), per update", lambda r: f"{r['ratio_updates']:.2f}", ""),
-        ("pose ATE vs the simulated truth, after the final whole-graph solve (cm)",
-         lambda r: f"{r['ate_m'] * 100:.1f}", ""),
-        ("whole-graph solves in the child: count; request to estimate p50 / max (s)",
-         lambda r: "n/a" if r["solve_s"] is None else
-         f"{r['solves']}; {np.median(r['solve_s']):.2f} / {r['solve_s'].max():.2f}", ""),
-        ("run (s); final solve (s); load average (2 cores, shared)",
-         lambda r: f"{r['total_s']:.0f}; {r['flush_s']:.1f}; {r['load']:.1f}", ""),
+        (
+            "pose ATE vs the simulated truth, after the final whole-graph solve (cm)",
+            lambda r: f"{r['ate_m'] * 100:.1f}",
+            "",
+        ),
+        (
+            "whole-graph solves in the child: count; request to estimate p50 / max (s)",
+            lambda r: (
+                "n/a"
+                if r["solve_s"] is None
+                else f"{r['solves']}; {np.median(r['solve_s']):.2f} / {r['solve_s'].max():.2f}"
+            ),
+            "",
+        ),
+        (
+            "run (s); final solve (s); load average (2 cores, shared)",
+            lambda r: f"{r['total_s']:.0f}; {r['flush_s']:.1f}; {r['load']:.1f}",
+            "",
+        ),
     ]
     rows = [[name, *(cell(r) for r in results), target] for name, cell, target in metrics]
     show_table(console, f"iSAM2 at {poses} poses + {landmarks} landmarks", header, rows)
-    notes = ("Simulated exploration of a building: rooms 6 m apart on a grid, two 1.5 m-radius laps per room, "
-             "straight corridors between rooms, every fourth visit back to a random earlier room (except in the "
-             f"no-returns variant); keyframes {STEP_M} m apart; odometry noise {ODOMETRY_SIGMA[0] * 100:g} cm / "
-             f"{ODOMETRY_SIGMA[1]:g} deg per keyframe (the visual front end's sigmas at ~200 inliers); a Huber loop "
-             f"closure when back within {LOOP_RADIUS_M} m and {LOOP_MAX_DEG:g} deg of a keyframe >= {LOOP_MIN_AGE} "
-             f"keyframes old (at most one per {LOOP_EVERY} keyframes, then up to 10 convergence updates, as in the "
-             f"service); every {OBSERVE_EVERY}rd keyframe up to {OBSERVE_MAX} landmarks in view (range "
-             f"{OBSERVE_RANGE_M:g} m) measured in the camera frame with {LANDMARK_SIGMA_M * 100:g} cm noise, a "
-             "landmark entering the solver once two keyframes saw it (the last variant: the odometry factors only, "
-             "which shows the growth of gtsam's own per-update cost with the number of variables). "
-             "Service configuration: a bounded iSAM2 window over the newest keyframes (older ones fixed in it), "
-             "rolled forward and rebuilt every window-step keyframes at the newest estimate of the whole graph, "
-             "which a child process solves (graph/window.py); the whole-graph variant is the one iSAM2 the service "
-             "used before. Update = one ISAM2.update call of the foreground solver (the window's rebuilds at rolls "
-             "included); per keyframe = "
-             "all of a keyframe's graph calls (odometry, observations, loop closure and its convergence updates, "
-             "estimate of the newest pose after each update, a roll); t(N) = mean over the 200 keyframes around N "
-             "(the last 200 at the end of the run), per update the same window in update order; the service "
-             "configuration is run 5 times (the same simulation: the spread is the machine's timing noise) and the "
-             "column shows the run with the median ratio. CHOLESKY "
-             "factorization and cached linearized factors throughout (QR and no cache measured no better). Load = "
-             "1-minute load average on the 2 shared cores during the variant."
-             + load_note(max(r["load"] for r in results)))
-    path = record("isam2", f"iSAM2 update cost at {poses} poses + {landmarks} landmarks",
-                  f"objslam bench isam2 --poses {poses} --landmarks {landmarks} --seed {seed}",
-                  markdown_table(header, rows), notes, write)
+    notes = (
+        "Simulated exploration of a building: rooms 6 m apart on a grid, two 1.5 m-radius laps per room, "
+        "straight corridors between rooms, every fourth visit back to a random earlier room (except in the "
+        f"no-returns variant); keyframes {STEP_M} m apart; odometry noise {ODOMETRY_SIGMA[0] * 100:g} cm / "
+        f"{ODOMETRY_SIGMA[1]:g} deg per keyframe (the visual front end's sigmas at ~200 inliers); a Huber loop "
+        f"closure when back within {LOOP_RADIUS_M} m and {LOOP_MAX_DEG:g} deg of a keyframe >= {LOOP_MIN_AGE} "
+        f"keyframes old (at most one per {LOOP_EVERY} keyframes, then up to 10 convergence updates, as in the "
+        f"service); every {OBSERVE_EVERY}rd keyframe up to {OBSERVE_MAX} landmarks in view (range "
+        f"{OBSERVE_RANGE_M:g} m) measured in the camera frame with {LANDMARK_SIGMA_M * 100:g} cm noise, a "
+        "landmark entering the solver once two keyframes saw it (the last variant: the odometry factors only, "
+        "which shows the growth of gtsam's own per-update cost with the number of variables). "
+        "Service configuration: a bounded iSAM2 window over the newest keyframes (older ones fixed in it), "
+        "rolled forward and rebuilt every window-step keyframes at the newest estimate of the whole graph, "
+        "which a child process solves (graph/window.py); the whole-graph variant is the one iSAM2 the service "
+        "used before. Update = one ISAM2.update call of the foreground solver (the window's rebuilds at rolls "
+        "included); per keyframe = "
+        "all of a keyframe's graph calls (odometry, observations, loop closure and its convergence updates, "
+        "estimate of the newest pose after each update, a roll); t(N) = mean over the 200 keyframes around N "
+        "(the last 200 at the end of the run), per update the same window in update order; the service "
+        "configuration is run 5 times (the same simulation: the spread is the machine's timing noise) and the "
+        "column shows the run with the median ratio. CHOLESKY "
+        "factorization and cached linearized factors throughout (QR and no cache measured no better). Load = "
+        "1-minute load average on the 2 shared cores during the variant." + load_note(max(r["load"] for r in results))
+    )
+    path = record(
+        "isam2",
+        f"iSAM2 update cost at {poses} poses + {landmarks} landmarks",
+        f"objslam bench isam2 --poses {poses} --landmarks {landmarks} --seed {seed}",
+        markdown_table(header, rows),
+        notes,
+        write,
+    )
     console.print(f"recorded in {path}")
     return results

@@ -15,8 +15,11 @@ from rich.console import Console
 from bench.report import markdown_table, record, show_table
 from rl.plot import plot_reward_curves
 
-VARIANTS = {"fixed 512": {"batch": "fixed", "n_steps": 64}, "fixed 2048": {"batch": "fixed", "n_steps": 256},
-            "entropy-based (64-256 per actor)": {"batch": "entropy", "b1": 64, "b2": 256}}
+VARIANTS = {
+    "fixed 512": {"batch": "fixed", "n_steps": 64},
+    "fixed 2048": {"batch": "fixed", "n_steps": 256},
+    "entropy-based (64-256 per actor)": {"batch": "entropy", "b1": 64, "b2": 256},
+}
 
 
 def run_batch_ablation(console: Console, grid_name: str, steps: int, plot: Path, write: Path | None) -> None:
@@ -28,8 +31,7 @@ def run_batch_ablation(console: Console, grid_name: str, steps: int, plot: Path,
     curves, rows = {}, []
     for label, overrides in VARIANTS.items():
         console.print(f"training {grid_name}, {label} ...")
-        trainer = Trainer(TrainConfig(map=grid_name, total_steps=steps, max_episode_steps=128, threads=1,
-                                      **overrides))
+        trainer = Trainer(TrainConfig(map=grid_name, total_steps=steps, max_episode_steps=128, threads=1, **overrides))
         result = trainer.train()
         curves[label] = trainer.curve
         with tempfile.TemporaryDirectory() as tmp:
@@ -37,13 +39,25 @@ def run_batch_ablation(console: Console, grid_name: str, steps: int, plot: Path,
             res = evaluate(trainer.grid, policy)
         batches = [r["batch_length"] * trainer.cfg.n_envs for r in trainer.curve]
         returns = [r["mean_return"] for r in trainer.curve[-10:] if r["mean_return"] is not None]
-        rows.append([label, f"{min(batches)}-{max(batches)}", len(trainer.curve),
-                     f"{sum(returns) / len(returns):.0f}" if returns else "-",
-                     f"{100 * res.precision:.1f} / {100 * res.recall:.1f}", f"{result.wall_s:.0f}"])
+        rows.append(
+            [
+                label,
+                f"{min(batches)}-{max(batches)}",
+                len(trainer.curve),
+                f"{sum(returns) / len(returns):.0f}" if returns else "-",
+                f"{100 * res.precision:.1f} / {100 * res.recall:.1f}",
+                f"{result.wall_s:.0f}",
+            ]
+        )
     plot_reward_curves(curves, plot, f"batch-size ablation on {grid_name} ({steps} steps)")
     header = ["batch", "batch size (steps)", "updates", "mean return, last 10 updates", "eval P / R %", "wall s"]
     show_table(console, f"Batch-size ablation (Fig. 3.10) on {grid_name}", header, rows)
-    record("lc-batch", "RL loop closure: batch-size ablation (Fig. 3.10)",
-           f"objslam bench lc-batch --map {grid_name} --steps {steps}", markdown_table(header, rows),
-           f"Reward curves: `{plot}`. Same seed, balanced loss and step budget in each run; evaluation as in "
-           "eval-lc (20 runs).", write)
+    record(
+        "lc-batch",
+        "RL loop closure: batch-size ablation (Fig. 3.10)",
+        f"objslam bench lc-batch --map {grid_name} --steps {steps}",
+        markdown_table(header, rows),
+        f"Reward curves: `{plot}`. Same seed, balanced loss and step budget in each run; evaluation as in "
+        "eval-lc (20 runs).",
+        write,
+    )

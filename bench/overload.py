@@ -24,8 +24,7 @@ import zenoh
 from rich.console import Console
 
 from bench.report import load_note, markdown_table, record, show_table
-from bench.rig import (client, free_port, query_status, router, start_serve, stop_serve,
-                               wait_for_status)
+from bench.rig import client, free_port, query_status, router, start_serve, stop_serve, wait_for_status
 from service.protocol import PREAMBLE, encode_frame, split_message
 from service.replay import frame_publisher
 from sources import open_dataset
@@ -79,8 +78,10 @@ class Probe:
 
     def __enter__(self) -> Probe:
         self._session = client(self.endpoint)
-        self._threads = [threading.Thread(target=self._sample_rss, daemon=True),
-                         threading.Thread(target=self._query, daemon=True)]
+        self._threads = [
+            threading.Thread(target=self._sample_rss, daemon=True),
+            threading.Thread(target=self._query, daemon=True),
+        ]
         for t in self._threads:
             t.start()
         return self
@@ -110,8 +111,12 @@ class Probe:
 
 
 def _accounted(status: dict) -> int:
-    return (status["frames_processed"] + status["frames_rejected_total"] + status["frames_dropped"]
-            + sum(status["errors"].values()))
+    return (
+        status["frames_processed"]
+        + status["frames_rejected_total"]
+        + status["frames_dropped"]
+        + sum(status["errors"].values())
+    )
 
 
 def _settle(session: zenoh.Session, published: int, timeout: float = 180.0) -> dict:
@@ -172,19 +177,35 @@ def measure(dataset: str, seconds: float | None, frames: int | None, factor: flo
     processed = status["frames_processed"] - before["frames_processed"]
     lat = np.array(probe.latency_ms) if probe.latency_ms else np.array([np.inf])
     return {
-        "dataset": dataset, "resolution": loop.resolution, "calibrated_fps": rate, "seconds": publish_s,
-        "published": sent, "publish_fps": sent / publish_s, "processed": processed,
-        "processing_fps": processed / elapsed, "dropped": status["frames_dropped"] - before["frames_dropped"],
-        "keyframes": status["keyframes"] - before["keyframes"], "load": float(np.mean(probe.load or [np.nan])),
+        "dataset": dataset,
+        "resolution": loop.resolution,
+        "calibrated_fps": rate,
+        "seconds": publish_s,
+        "published": sent,
+        "publish_fps": sent / publish_s,
+        "processed": processed,
+        "processing_fps": processed / elapsed,
+        "dropped": status["frames_dropped"] - before["frames_dropped"],
+        "keyframes": status["keyframes"] - before["keyframes"],
+        "load": float(np.mean(probe.load or [np.nan])),
         "rejected": status["frames_rejected_total"] - before["frames_rejected_total"],
-        "errors": status["errors"], "received": status["frames_received"], "accounted": _accounted(status),
-        "total_published": loop.sent, "queue_depth_max": probe.queue_depth_max,
+        "errors": status["errors"],
+        "received": status["frames_received"],
+        "accounted": _accounted(status),
+        "total_published": loop.sent,
+        "queue_depth_max": probe.queue_depth_max,
         "queue_capacity": probe.queue_capacity or status["queue_capacity"],
         "drops_seen_while_running": max(probe.dropped_seen, default=0) - before["frames_dropped"],
-        "payload_mb": loop.payload_mb, "rss_idle": rss_idle, "rss_start": rss_start, "rss_end": rss_end,
-        "rss_peak": max([rss_start, rss_end, *probe.rss]), "rss_hwm": rss_peak,
-        "status_queries": len(probe.latency_ms) + probe.failed, "status_failed": probe.failed,
-        "status_p50_ms": float(np.percentile(lat, 50)), "status_p99_ms": float(np.percentile(lat, 99)),
+        "payload_mb": loop.payload_mb,
+        "rss_idle": rss_idle,
+        "rss_start": rss_start,
+        "rss_end": rss_end,
+        "rss_peak": max([rss_start, rss_end, *probe.rss]),
+        "rss_hwm": rss_peak,
+        "status_queries": len(probe.latency_ms) + probe.failed,
+        "status_failed": probe.failed,
+        "status_p50_ms": float(np.percentile(lat, 50)),
+        "status_p99_ms": float(np.percentile(lat, 99)),
         "status_max_ms": float(lat.max()),
     }
 
@@ -202,8 +223,9 @@ def _publish_for(publish: Callable[[], None], seconds: float, rate_hz: float) ->
     return sent
 
 
-def _publish_paced(session: zenoh.Session, publish: Callable[[], None], loop: FrameLoop, frames: int,
-                   window: int = 16) -> int:
+def _publish_paced(
+    session: zenoh.Session, publish: Callable[[], None], loop: FrameLoop, frames: int, window: int = 16
+) -> int:
     """Publish ``frames`` frames keeping at most ``window`` unaccounted for, so the queue never drops."""
     accounted = _accounted(query_status(session, STATUS_KEY))
     for _ in range(frames):
@@ -230,34 +252,58 @@ def _rows(r: dict, overload: bool) -> list[list[object]]:
             ["publish rate / processing rate", f"{ratio:.2f}", ">= 3"],
         ]
     else:
-        rows += [["frames published, paced (no drops)", r["published"], ""],
-                 ["processing rate (frames/s)", f"{r['processing_fps']:.1f}", ""]]
+        rows += [
+            ["frames published, paced (no drops)", r["published"], ""],
+            ["processing rate (frames/s)", f"{r['processing_fps']:.1f}", ""],
+        ]
     rows += [
-        ["processed / rejected / dropped / errors", f"{r['processed']} / {r['rejected']} / {r['dropped']} / {errors}",
-         "drops counted" if overload else "0 dropped"],
-        ["all frames accounted in status (received = processed + rejected + dropped + errors)",
-         f"{r['received']} received, {r['accounted']} accounted, {r['total_published']} published", "equal"],
+        [
+            "processed / rejected / dropped / errors",
+            f"{r['processed']} / {r['rejected']} / {r['dropped']} / {errors}",
+            "drops counted" if overload else "0 dropped",
+        ],
+        [
+            "all frames accounted in status (received = processed + rejected + dropped + errors)",
+            f"{r['received']} received, {r['accounted']} accounted, {r['total_published']} published",
+            "equal",
+        ],
         ["drops already in status while publishing", r["drops_seen_while_running"], "> 0" if overload else ""],
         ["queue depth max / capacity", f"{r['queue_depth_max']} / {r['queue_capacity']}", "<= capacity"],
-        ["RSS idle / start / peak / end (MB)",
-         f"{r['rss_idle']:.0f} / {r['rss_start']:.0f} / {r['rss_peak']:.0f} / {r['rss_end']:.0f}", ""],
-        ["RSS growth end - start (MB)", f"{rss_growth:+.1f}" + (
-            f" (a full ingest queue holds {r['queue_capacity']} x {r['payload_mb']:.2f} MB = "
-            f"{r['queue_capacity'] * r['payload_mb']:.0f} MB)" if overload else ""),
-         "bounded" if overload else f"<= {RSS_TARGET_MB:.0f}"],
-        ["keyframes added; RSS growth per keyframe (kB)",
-         f"{r['keyframes']}; {rss_growth * 1024 / max(r['keyframes'], 1):.0f}", ""],
+        [
+            "RSS idle / start / peak / end (MB)",
+            f"{r['rss_idle']:.0f} / {r['rss_start']:.0f} / {r['rss_peak']:.0f} / {r['rss_end']:.0f}",
+            "",
+        ],
+        [
+            "RSS growth end - start (MB)",
+            f"{rss_growth:+.1f}"
+            + (
+                f" (a full ingest queue holds {r['queue_capacity']} x {r['payload_mb']:.2f} MB = "
+                f"{r['queue_capacity'] * r['payload_mb']:.0f} MB)"
+                if overload
+                else ""
+            ),
+            "bounded" if overload else f"<= {RSS_TARGET_MB:.0f}",
+        ],
+        [
+            "keyframes added; RSS growth per keyframe (kB)",
+            f"{r['keyframes']}; {rss_growth * 1024 / max(r['keyframes'], 1):.0f}",
+            "",
+        ],
         ["status queries from another session (failed)", f"{r['status_queries']} ({r['status_failed']})", "0 failed"],
-        ["status latency p50 / p99 / max (ms)",
-         f"{r['status_p50_ms']:.1f} / {r['status_p99_ms']:.1f} / {r['status_max_ms']:.1f}",
-         f"p99 < {STATUS_P99_TARGET_MS:.0f}"],
+        [
+            "status latency p50 / p99 / max (ms)",
+            f"{r['status_p50_ms']:.1f} / {r['status_p99_ms']:.1f} / {r['status_max_ms']:.1f}",
+            f"p99 < {STATUS_P99_TARGET_MS:.0f}",
+        ],
         ["machine load average during the run (2 cores, shared)", f"{r['load']:.1f}", ""],
     ]
     return rows
 
 
-def run_overload(console: Console, dataset: str, seconds: float, frames: int | None, factor: float,
-                 write: Path | None) -> dict:
+def run_overload(
+    console: Console, dataset: str, seconds: float, frames: int | None, factor: float, write: Path | None
+) -> dict:
     """Measure, print the table and record it (``overload``, or ``memory`` for a ``--frames`` run)."""
     result = measure(dataset, None if frames is not None else seconds, frames, factor)
     overload = frames is None
@@ -266,17 +312,21 @@ def run_overload(console: Console, dataset: str, seconds: float, frames: int | N
     if overload:
         title = f"Overload: {factor:g}x the processing rate for {seconds:g} s"
         command = f"objslam bench overload --seconds {seconds:g} --factor {factor:g} --dataset '{dataset}'"
-        notes = ("`objslam serve` (default configuration, provided odometry and detections, queue of "
-                 f"{result['queue_capacity']}) in a subprocess behind a zenoh router; the processing rate is "
-                 "measured first on two bursts that fit the queue, then frames are published at the factor times "
-                 "that rate. RSS of the serve process from /proc (VmRSS, sampled every 0.25 s); start = after the "
-                 "calibration bursts. Status latency: `status` queries every 50 ms from a second zenoh session, "
-                 "round trip through the router.")
+        notes = (
+            "`objslam serve` (default configuration, provided odometry and detections, queue of "
+            f"{result['queue_capacity']}) in a subprocess behind a zenoh router; the processing rate is "
+            "measured first on two bursts that fit the queue, then frames are published at the factor times "
+            "that rate. RSS of the serve process from /proc (VmRSS, sampled every 0.25 s); start = after the "
+            "calibration bursts. Status latency: `status` queries every 50 ms from a second zenoh session, "
+            "round trip through the router."
+        )
     else:
         title = f"Memory over a {frames}-frame run"
         command = f"objslam bench overload --frames {frames} --dataset '{dataset}'"
-        notes = ("Frames are published paced (at most 16 unaccounted for), so every frame reaches the pipeline. "
-                 "RSS of the serve process from /proc; start = after 64 warm-up frames, growth = end - start.")
+        notes = (
+            "Frames are published paced (at most 16 unaccounted for), so every frame reaches the pipeline. "
+            "RSS of the serve process from /proc; start = after 64 warm-up frames, growth = end - start."
+        )
     notes += load_note(result["load"])
     show_table(console, title, header, rows)
     path = record("overload" if overload else "memory", title, command, markdown_table(header, rows), notes, write)

@@ -19,8 +19,18 @@ from service.persistence import Persistence
 from slam.core import Pipeline
 from sources import open_dataset
 
-HEADER = ["keyframes", "frames", "loops accepted", "snapshot MB", "state() ms", "capture ms", "write ms",
-          "load ms", "restore ms", "restored = saved"]
+HEADER = [
+    "keyframes",
+    "frames",
+    "loops accepted",
+    "snapshot MB",
+    "state() ms",
+    "capture ms",
+    "write ms",
+    "load ms",
+    "restore ms",
+    "restored = saved",
+]
 REPEATS = 5  # medians of this many captures and writes, and of REPEATS // 2 loads and restores
 
 
@@ -74,12 +84,14 @@ def run_persistence_bench(console, dataset: str, checkpoints: list[int], write: 
     rows = measure(dataset, checkpoints)
     show_table(console, "Snapshot cost against map size", HEADER, rows)
     if write is not None:
-        notes = (f"Medians of {REPEATS} captures and writes. In `serve --state-dir` the worker thread captures "
-                 "(`state()` under the pipeline lock, so queries wait for that part only, then pickling) and writes "
-                 "(SHA-256, write, fsync, rename, directory fsync); capture + write is the worker's stall every "
-                 "`persistence.every_keyframes` keyframes (default 10). Load (read, SHA-256, restricted unpickle) "
-                 "and restore (replaying the iSAM2 update log, rebuilding the ORB extractor and matcher) happen "
-                 "once, on start. Most of the size is the ORB features of every keyframe that loop closure keeps "
-                 "(~0.1 MB each), so size and capture time grow linearly with the map.")
+        notes = (
+            f"Medians of {REPEATS} captures and writes. In `serve --state-dir` the worker thread captures "
+            "(`state()` under the pipeline lock, so queries wait for that part only, then pickling) and writes "
+            "(SHA-256, write, fsync, rename, directory fsync); capture + write is the worker's stall every "
+            "`persistence.every_keyframes` keyframes (default 10). Load (read, SHA-256, restricted unpickle) "
+            "and restore (replaying the iSAM2 update log, rebuilding the ORB extractor and matcher) happen "
+            "once, on start. Most of the size is the ORB features of every keyframe that loop closure keeps "
+            "(~0.1 MB each), so size and capture time grow linearly with the map."
+        )
         cmd = f"objslam bench persistence --dataset '{dataset}' --keyframes {','.join(map(str, checkpoints))}"
         record("persistence", "Snapshot write and resume cost", cmd, markdown_table(HEADER, rows), notes, write)

@@ -32,8 +32,10 @@ def train_policy(run_dir: Path, out: Path, steps: int, init_from: Path | None = 
     from rl.ppo import TrainConfig, Trainer
 
     grid = GridMap.load(run_dir / GRID_FILE)
-    trainer = Trainer(TrainConfig(map=grid.name, total_steps=steps, max_episode_steps=128, threads=1,
-                                  init_from=str(init_from or "")), grid)
+    trainer = Trainer(
+        TrainConfig(map=grid.name, total_steps=steps, max_episode_steps=128, threads=1, init_from=str(init_from or "")),
+        grid,
+    )
     result = trainer.train()
     export_trainer(trainer, out, result.wall_s)
     return {"cells": f"{grid.shape[0]}x{grid.shape[1]}", "locations": grid.n_loops, "wall_s": result.wall_s}
@@ -46,16 +48,17 @@ def run_two_pass(spec: str, work: Path, steps: int, init_from: Path | None = Non
         return rows + [{"dataset": spec, "mode": "policy", "skipped": "trajectory never crosses itself"}]
     policy = work / "policy.onnx"
     trained = train_policy(first, policy, steps, init_from)
-    rows.append(dict(run_one(spec, work / "policy", {"source": "policy", "policy": str(policy)}), mode="policy",
-                     **trained))
+    rows.append(
+        dict(run_one(spec, work / "policy", {"source": "policy", "policy": str(policy)}), mode="policy", **trained)
+    )
     # the front end is the same in both passes: its own trajectory is the "odometry only" row
-    rows.append(dict(rows[0], mode="odometry only", accepted="-", false_accepted="-", windows="-",
-                     policy_p50_ms=None))
+    rows.append(dict(rows[0], mode="odometry only", accepted="-", false_accepted="-", windows="-", policy_p50_ms=None))
     return rows
 
 
-def run_policy_loops_bench(console: Console, datasets: list[str] | None, steps: int,
-                           write: Path | None, init_from: Path | None = None) -> list[dict[str, Any]]:
+def run_policy_loops_bench(
+    console: Console, datasets: list[str] | None, steps: int, write: Path | None, init_from: Path | None = None
+) -> list[dict[str, Any]]:
     results = []
     for spec in datasets or default_datasets():
         console.print(f"two-pass RL loop closure on {spec} ...")
@@ -63,8 +66,17 @@ def run_policy_loops_bench(console: Console, datasets: list[str] | None, steps: 
         with tempfile.TemporaryDirectory() as tmp:
             results += run_two_pass(spec, Path(tmp), steps, init_from)
         console.print(f"  done in {time.perf_counter() - t0:.0f} s")
-    header = ["dataset", "loop source", "grid (cells, locations)", "policy training", "accepted",
-              "false accepted (target 0)", "revisit windows found", "ATE (cm)", "policy p50 per keyframe (ms)"]
+    header = [
+        "dataset",
+        "loop source",
+        "grid (cells, locations)",
+        "policy training",
+        "accepted",
+        "false accepted (target 0)",
+        "revisit windows found",
+        "ATE (cm)",
+        "policy p50 per keyframe (ms)",
+    ]
     rows = []
     start = f" from {init_from.stem}" if init_from else ""
     for r in results:
@@ -73,20 +85,36 @@ def run_policy_loops_bench(console: Console, datasets: list[str] | None, steps: 
             rows.append([name, r["mode"], "-", r["skipped"], "-", "-", "-", "-", "-"])
             continue
         ate = r["ate_odometry_cm"] if r["mode"] == "odometry only" else r["ate_loops_cm"]
-        rows.append([name, r["mode"], f"{r['cells']}, {r['locations']}" if "cells" in r else "-",
-                     f"{steps} steps{start}, {r['wall_s']:.0f} s" if "wall_s" in r else "-",
-                     r["accepted"], r["false_accepted"], r["windows"], f"{ate:.2f}",
-                     f"{r['policy_p50_ms']:.2f}" if r.get("policy_p50_ms") is not None else "-"])
+        rows.append(
+            [
+                name,
+                r["mode"],
+                f"{r['cells']}, {r['locations']}" if "cells" in r else "-",
+                f"{steps} steps{start}, {r['wall_s']:.0f} s" if "wall_s" in r else "-",
+                r["accepted"],
+                r["false_accepted"],
+                r["windows"],
+                f"{ate:.2f}",
+                f"{r['policy_p50_ms']:.2f}" if r.get("policy_p50_ms") is not None else "-",
+            ]
+        )
     show_table(console, "RL loop closure on real maps: policy vs appearance vs odometry only", header, rows)
-    notes = ("Two passes per dataset: the appearance run builds the map and its grid world (0.25 m cells, "
-             "crossings as loop-closure locations), a PPO policy is trained for it (128-step episodes, one "
-             "thread; started from the shipped grid-world policy's parameters of matching shape when 'from' "
-             "names one: its encoder and LSTM, and its heads when the location counts agree), then the policy "
-             "is the only candidate source (a loop-closure action holds while the camera stays in its cell; "
-             "the nearest earlier keyframes at the location are verified). A loop is false when the ground-truth "
-             "poses of its frames are more than 0.3 m / 20 deg apart. 'policy p50' is the median time of "
-             "projecting the pose, rendering the observation and running the ONNX policy, per keyframe.")
-    record("policy-loops", "RL loop closure in the service (issue 6)",
-           f"objslam bench policy-loops --steps {steps}" + (f" --init-from {init_from}" if init_from else ""),
-           markdown_table(header, rows), notes, write)
+    notes = (
+        "Two passes per dataset: the appearance run builds the map and its grid world (0.25 m cells, "
+        "crossings as loop-closure locations), a PPO policy is trained for it (128-step episodes, one "
+        "thread; started from the shipped grid-world policy's parameters of matching shape when 'from' "
+        "names one: its encoder and LSTM, and its heads when the location counts agree), then the policy "
+        "is the only candidate source (a loop-closure action holds while the camera stays in its cell; "
+        "the nearest earlier keyframes at the location are verified). A loop is false when the ground-truth "
+        "poses of its frames are more than 0.3 m / 20 deg apart. 'policy p50' is the median time of "
+        "projecting the pose, rendering the observation and running the ONNX policy, per keyframe."
+    )
+    record(
+        "policy-loops",
+        "RL loop closure in the service (issue 6)",
+        f"objslam bench policy-loops --steps {steps}" + (f" --init-from {init_from}" if init_from else ""),
+        markdown_table(header, rows),
+        notes,
+        write,
+    )
     return results

@@ -30,8 +30,10 @@ def load_note(load: float) -> str:
     cores = os.cpu_count() or 1
     if load <= cores * 0.75:
         return ""
-    return (f" Measured while other jobs ran on the machine (1-minute load average {load:.1f} on {cores} cores): "
-            "times are longer and rates lower than on an idle machine.")
+    return (
+        f" Measured while other jobs ran on the machine (1-minute load average {load:.1f} on {cores} cores): "
+        "times are longer and rates lower than on an idle machine."
+    )
 
 
 class StealMeter:
@@ -80,9 +82,11 @@ def markdown_table(header: list[str], rows: list[list[object]]) -> str:
 def record(name: str, title: str, command: str, table: str, notes: str = "", path: Path | None = None) -> Path:
     """Replace (or append) the ``name`` section of the benchmarks file with a fresh table."""
     path = path or DEFAULT_FILE
-    body = (f"<!-- bench:{name} -->\n## {title}\n\n"
-            f"Command: `{command}`  \nMachine: {machine()}  \nDate: {dt.date.today().isoformat()}\n\n"
-            f"{table}\n" + (f"\n{notes}\n" if notes else "") + f"<!-- /bench:{name} -->")
+    body = (
+        f"<!-- bench:{name} -->\n## {title}\n\n"
+        f"Command: `{command}`  \nMachine: {machine()}  \nDate: {dt.date.today().isoformat()}\n\n"
+        f"{table}\n" + (f"\n{notes}\n" if notes else "") + f"<!-- /bench:{name} -->"
+    )
     text = path.read_text() if path.is_file() else "# objslam benchmarks\n\nMeasured tables, newest run of each.\n"
     pattern = re.compile(rf"<!-- bench:{re.escape(name)} -->.*?<!-- /bench:{re.escape(name)} -->", re.S)
     text = pattern.sub(lambda _: body, text) if pattern.search(text) else text.rstrip() + "\n\n" + body + "\n"

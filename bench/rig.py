@@ -50,14 +50,18 @@ def start_serve(endpoint: str, robot: str, env: dict[str, str] | None = None) ->
     """``objslam serve`` as a client of ``endpoint``; its log goes to the returned file."""
     log = Path(tempfile.mkstemp(prefix=f"objslam-serve-{robot}-", suffix=".log")[1])
     with log.open("w") as out:
-        proc = subprocess.Popen([sys.executable, "-m", "service", "serve", "--mode", "client", "--connect", endpoint,
-                                 "--robot", robot], env={**os.environ, **(env or {})}, stdout=out,
-                                stderr=subprocess.STDOUT)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "service", "serve", "--mode", "client", "--connect", endpoint, "--robot", robot],
+            env={**os.environ, **(env or {})},
+            stdout=out,
+            stderr=subprocess.STDOUT,
+        )
     return proc, log
 
 
-def wait_for_status(session: zenoh.Session, key: str, proc: subprocess.Popen, log: Path,
-                    timeout: float = 120.0) -> dict:
+def wait_for_status(
+    session: zenoh.Session, key: str, proc: subprocess.Popen, log: Path, timeout: float = 120.0
+) -> dict:
     """The first status reply of a starting service; RuntimeError (with its log's tail) if it dies or hangs."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

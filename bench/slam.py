@@ -19,11 +19,11 @@ from typing import Any
 import numpy as np
 from rich.console import Console
 
-from graph.geometry import motion_magnitude, pose_from_tum, relative
+from bench.calibrate import calibrate_depth_scale
 from bench.report import markdown_table, record, show_table
+from graph.geometry import motion_magnitude, pose_from_tum, relative
 from service.config import load_settings
 from service.run import run_dataset
-from bench.calibrate import calibrate_depth_scale
 from sources import Dataset, ScaledDepth, TruthAsOdometry, WithoutOdometry, open_dataset
 
 REDKITCHEN_WINDOWS = [((146, 193), (636, 669)), ((221, 290), (945, 999))]
@@ -42,8 +42,9 @@ def geometry_error(dataset: Dataset, r: dict) -> tuple[float, float] | None:
     if "relative_pose" not in r:
         return None
     gt = dataset.ground_truth.poses
-    t, a = motion_magnitude(relative(relative(gt[r["match_frame"]], gt[r["query_frame"]]),
-                                     pose_from_tum(np.asarray(r["relative_pose"]))))
+    t, a = motion_magnitude(
+        relative(relative(gt[r["match_frame"]], gt[r["query_frame"]]), pose_from_tum(np.asarray(r["relative_pose"])))
+    )
     return t, math.degrees(a)
 
 
@@ -51,8 +52,12 @@ def windows_found(loops: list[dict], windows: list) -> str:
     """How many known revisit windows have an accepted loop linking them."""
     found = 0
     for (a0, a1), (b0, b1) in windows:
-        found += any(r["accepted"] and a0 <= min(r["match_frame"], r["query_frame"]) <= a1
-                     and b0 <= max(r["match_frame"], r["query_frame"]) <= b1 for r in loops)
+        found += any(
+            r["accepted"]
+            and a0 <= min(r["match_frame"], r["query_frame"]) <= a1
+            and b0 <= max(r["match_frame"], r["query_frame"]) <= b1
+            for r in loops
+        )
     return f"{found} / {len(windows)}"
 
 
@@ -61,8 +66,13 @@ def _settings(loops: dict[str, Any] | None = None, objects: dict[str, Any] | Non
     return load_settings(None, {"loops": loops or {"source": "appearance"}, "objects": objects or {}})
 
 
-def run_one(spec: str, out: Path, loops: dict[str, Any] | None = None,
-            objects: dict[str, Any] | None = None, depth_factor: float = 1.0) -> dict[str, Any]:
+def run_one(
+    spec: str,
+    out: Path,
+    loops: dict[str, Any] | None = None,
+    objects: dict[str, Any] | None = None,
+    depth_factor: float = 1.0,
+) -> dict[str, Any]:
     """One end-to-end run without provided odometry; returns the figures of both tables.
 
     ``loops`` overrides loop-closure settings (default: the appearance source), ``objects`` object settings;
@@ -72,26 +82,36 @@ def run_one(spec: str, out: Path, loops: dict[str, Any] | None = None,
     dataset = WithoutOdometry(ScaledDepth(dataset, depth_factor) if depth_factor != 1.0 else dataset)
     summary = run_dataset(dataset, out, _settings(loops, objects), progress=False)
     loops = json.loads((out / "loops.json").read_text())
-    judged = [dict(r, true=is_true_loop(dataset, r["match_frame"], r["query_frame"]),
-                   geo=geometry_error(dataset, r)) for r in loops]
+    judged = [
+        dict(r, true=is_true_loop(dataset, r["match_frame"], r["query_frame"]), geo=geometry_error(dataset, r))
+        for r in loops
+    ]
     accepted_geo = [r["geo"] for r in judged if r["accepted"]]
     lat = summary["latency"]
     windows = REDKITCHEN_WINDOWS if "redkitchen" in spec else None
     return {
-        "dataset": spec, "frames": summary["frames_processed"], "keyframes": summary["keyframes"],
+        "dataset": spec,
+        "frames": summary["frames_processed"],
+        "keyframes": summary["keyframes"],
         "ate_odometry_cm": summary["ate"]["odometry"]["ate_rmse_m"] * 100,
         "ate_loops_cm": summary["ate"]["trajectory"]["ate_rmse_m"] * 100,
         "rpe_cm": summary["ate"]["odometry"]["rpe_trans_rmse_m"] * 100,
         "rpe_deg": summary["ate"]["odometry"]["rpe_rot_rmse_deg"],
-        "frontend_fps": 1000.0 / lat["frontend"]["p50_ms"], "frontend_p95_ms": lat["frontend"]["p95_ms"],
+        "frontend_fps": 1000.0 / lat["frontend"]["p50_ms"],
+        "frontend_p95_ms": lat["frontend"]["p95_ms"],
         "tracking_lost": summary["tracking_lost"],
-        "candidates": len(judged), "true": sum(r["true"] for r in judged),
+        "candidates": len(judged),
+        "true": sum(r["true"] for r in judged),
         "accepted": sum(r["accepted"] for r in judged),
         "false_accepted": sum(r["accepted"] and not r["true"] for r in judged),
         "true_rejected": sum(r["true"] and not r["accepted"] for r in judged),
         "wrong_geometry": sum(g[0] > 0.1 or g[1] > 5.0 for g in accepted_geo),
-        "median_error": (f"{np.median([g[0] for g in accepted_geo]) * 100:.1f} cm / "
-                         f"{np.median([g[1] for g in accepted_geo]):.2f} deg") if accepted_geo else "n/a",
+        "median_error": (
+            f"{np.median([g[0] for g in accepted_geo]) * 100:.1f} cm / "
+            f"{np.median([g[1] for g in accepted_geo]):.2f} deg"
+        )
+        if accepted_geo
+        else "n/a",
         "windows": windows_found(judged, windows) if windows else "n/a",
         "sources": sorted({r["source"] for r in judged}),
         "policy_p50_ms": lat["policy"]["p50_ms"] if lat.get("policy", {}).get("n") else None,
@@ -137,41 +157,102 @@ def _short(spec: str) -> str:
 
 
 def _record_odometry(console: Console, results: list[dict], write: Path | None) -> None:
-    header = ["dataset", "frames", "keyframes", "ATE odometry only (cm)", "ATE with loops (cm)", "target",
-              "ATE with loops, ground truth as odometry (cm)",
-              "depth ICP / ground-truth translation", "ATE with loops, depth scale calibrated (cm)",
-              "RPE per frame (cm / deg)",
-              "front end p50 (frames/s)", "front end p95 (ms)", "tracking lost"]
-    rows = [[_short(r["dataset"]), r["frames"], r["keyframes"], f"{r['ate_odometry_cm']:.2f}",
-             f"{r['ate_loops_cm']:.2f}", "<= 3 cm (7-Scenes, with loops)", f"{r['ate_truth_odometry_cm']:.2f}",
-             f"{r['depth_ratio']:.4f}", f"{r['ate_calibrated_cm']:.2f}",
-             f"{r['rpe_cm']:.3f} / {r['rpe_deg']:.3f}", f"{r['frontend_fps']:.1f}", f"{r['frontend_p95_ms']:.1f}",
-             r["tracking_lost"]] for r in results]
+    header = [
+        "dataset",
+        "frames",
+        "keyframes",
+        "ATE odometry only (cm)",
+        "ATE with loops (cm)",
+        "target",
+        "ATE with loops, ground truth as odometry (cm)",
+        "depth ICP / ground-truth translation",
+        "ATE with loops, depth scale calibrated (cm)",
+        "RPE per frame (cm / deg)",
+        "front end p50 (frames/s)",
+        "front end p95 (ms)",
+        "tracking lost",
+    ]
+    rows = [
+        [
+            _short(r["dataset"]),
+            r["frames"],
+            r["keyframes"],
+            f"{r['ate_odometry_cm']:.2f}",
+            f"{r['ate_loops_cm']:.2f}",
+            "<= 3 cm (7-Scenes, with loops)",
+            f"{r['ate_truth_odometry_cm']:.2f}",
+            f"{r['depth_ratio']:.4f}",
+            f"{r['ate_calibrated_cm']:.2f}",
+            f"{r['rpe_cm']:.3f} / {r['rpe_deg']:.3f}",
+            f"{r['frontend_fps']:.1f}",
+            f"{r['frontend_p95_ms']:.1f}",
+            r["tracking_lost"],
+        ]
+        for r in results
+    ]
     show_table(console, "RGB-D odometry and loop closure: trajectory error", header, rows)
-    notes = ("Frames are replayed without odometry, so the visual front end (ORB + depth, PnP-RANSAC, LM "
-             "refinement, depth ICP at keyframes) runs; ATE is RMSE after SE(3) Umeyama alignment over every "
-             "frame; RPE is between consecutive frames. Front-end rate is 1 / median per-frame front-end time. "
-             "'Ground truth as odometry': a second run whose frames carry the ground-truth pose as external "
-             "odometry (graph odometry sigmas), with the same loop closure and object landmarks: the error "
-             "the graph's other factors leave on a perfect trajectory, roughly the floor for any front end. "
-             "'Depth ICP / ground-truth translation': the median ratio of `objslam calibrate depth-scale` (depth "
-             "ICP between frames 15 apart, started at the ground-truth motion, every 9th frame); a third run "
-             "divides metric depth by it: the depth scale calibrated against the ground truth, the way a depth "
-             "sensor is calibrated against a motion-capture reference.")
-    record("odometry", "RGB-D odometry: ATE with and without loop closures", "objslam bench odometry",
-           markdown_table(header, rows), notes, write)
+    notes = (
+        "Frames are replayed without odometry, so the visual front end (ORB + depth, PnP-RANSAC, LM "
+        "refinement, depth ICP at keyframes) runs; ATE is RMSE after SE(3) Umeyama alignment over every "
+        "frame; RPE is between consecutive frames. Front-end rate is 1 / median per-frame front-end time. "
+        "'Ground truth as odometry': a second run whose frames carry the ground-truth pose as external "
+        "odometry (graph odometry sigmas), with the same loop closure and object landmarks: the error "
+        "the graph's other factors leave on a perfect trajectory, roughly the floor for any front end. "
+        "'Depth ICP / ground-truth translation': the median ratio of `objslam calibrate depth-scale` (depth "
+        "ICP between frames 15 apart, started at the ground-truth motion, every 9th frame); a third run "
+        "divides metric depth by it: the depth scale calibrated against the ground truth, the way a depth "
+        "sensor is calibrated against a motion-capture reference."
+    )
+    record(
+        "odometry",
+        "RGB-D odometry: ATE with and without loop closures",
+        "objslam bench odometry",
+        markdown_table(header, rows),
+        notes,
+        write,
+    )
 
 
 def _record_loops(console: Console, results: list[dict], write: Path | None) -> None:
-    header = ["dataset", "candidates", "true", "accepted", "false accepted (target 0)", "true rejected",
-              "revisit windows found", "accepted with wrong geometry", "median error of accepted", "sources"]
-    rows = [[_short(r["dataset"]), r["candidates"], r["true"], r["accepted"], r["false_accepted"],
-             r["true_rejected"], r["windows"], r["wrong_geometry"], r["median_error"], ", ".join(r["sources"])]
-            for r in results]
+    header = [
+        "dataset",
+        "candidates",
+        "true",
+        "accepted",
+        "false accepted (target 0)",
+        "true rejected",
+        "revisit windows found",
+        "accepted with wrong geometry",
+        "median error of accepted",
+        "sources",
+    ]
+    rows = [
+        [
+            _short(r["dataset"]),
+            r["candidates"],
+            r["true"],
+            r["accepted"],
+            r["false_accepted"],
+            r["true_rejected"],
+            r["windows"],
+            r["wrong_geometry"],
+            r["median_error"],
+            ", ".join(r["sources"]),
+        ]
+        for r in results
+    ]
     show_table(console, "Loop-closure candidates judged against ground truth", header, rows)
-    notes = ("A candidate is true when the ground-truth poses of its two frames are within 0.3 m and 20 deg. "
-             "7-Scenes revisit windows: frames 146-193 with 636-669, and 221-290 with 945-999. 'Wrong geometry': "
-             "the verified relative pose differs from the ground-truth one by more than 10 cm or 5 deg. "
-             "Synthetic candidates need the 5 s minimum gap; the first revisit comes after about 8 s.")
-    record("loops", "Loop closure: candidates, verification and false accepts", "objslam bench loops",
-           markdown_table(header, rows), notes, write)
+    notes = (
+        "A candidate is true when the ground-truth poses of its two frames are within 0.3 m and 20 deg. "
+        "7-Scenes revisit windows: frames 146-193 with 636-669, and 221-290 with 945-999. 'Wrong geometry': "
+        "the verified relative pose differs from the ground-truth one by more than 10 cm or 5 deg. "
+        "Synthetic candidates need the 5 s minimum gap; the first revisit comes after about 8 s."
+    )
+    record(
+        "loops",
+        "Loop closure: candidates, verification and false accepts",
+        "objslam bench loops",
+        markdown_table(header, rows),
+        notes,
+        write,
+    )

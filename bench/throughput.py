@@ -28,8 +28,7 @@ def _serve_and_publish(payloads: list[bytes], rate_hz: float | None) -> tuple[di
     every frame is processed or rejected. Returns the final status, the publishing and the total seconds."""
     port = free_port()
     session = router(port)
-    serve, log = start_serve(f"tcp/127.0.0.1:{port}", ROBOT,
-                             {"OBJSLAM_INGEST__QUEUE_SIZE": str(len(payloads) + 1)})
+    serve, log = start_serve(f"tcp/127.0.0.1:{port}", ROBOT, {"OBJSLAM_INGEST__QUEUE_SIZE": str(len(payloads) + 1)})
     key = f"objslam/{ROBOT}/status"
     try:
         wait_for_status(session, key, serve, log)
@@ -63,13 +62,24 @@ def measure(dataset: str, frames: int) -> dict:
     paced, _, _ = _serve_and_publish(payloads, CAMERA_HZ)
     load.append(os.getloadavg()[0])
     lat, plat = status["latency"], paced["latency"]
-    return {"dataset": dataset, "frames": frames, "resolution": f"{data.camera.width}x{data.camera.height}",
-            "steal": steal.percent(), "publish_fps": frames / published, "processed": status["frames_processed"],
-            "dropped": status["frames_dropped"], "keyframes": status["keyframes"],
-            "throughput_fps": status["frames_processed"] / elapsed, "decode": lat["decode"], "graph": lat["graph"],
-            "paced_graph": plat["graph"], "paced_latency": plat["ingest_to_graph"],
-            "paced_processed": paced["frames_processed"], "paced_dropped": paced["frames_dropped"],
-            "load": sum(load) / len(load)}
+    return {
+        "dataset": dataset,
+        "frames": frames,
+        "resolution": f"{data.camera.width}x{data.camera.height}",
+        "steal": steal.percent(),
+        "publish_fps": frames / published,
+        "processed": status["frames_processed"],
+        "dropped": status["frames_dropped"],
+        "keyframes": status["keyframes"],
+        "throughput_fps": status["frames_processed"] / elapsed,
+        "decode": lat["decode"],
+        "graph": lat["graph"],
+        "paced_graph": plat["graph"],
+        "paced_latency": plat["ingest_to_graph"],
+        "paced_processed": paced["frames_processed"],
+        "paced_dropped": paced["frames_dropped"],
+        "load": sum(load) / len(load),
+    }
 
 
 def _p(stage: dict, unit: str = "") -> str:
@@ -84,28 +94,41 @@ def run_throughput(console: Console, dataset: str, frames: int, write: Path | No
         ["frames", f"`{r['dataset']}`, {r['frames']} frames {r['resolution']}, {r['keyframes']} keyframes", ""],
         ["max rate: publish (frames/s)", f"{r['publish_fps']:.0f}", ""],
         ["max rate: processed / dropped", f"{r['processed']} / {r['dropped']}", ""],
-        ["**max rate: replay-to-graph throughput (frames/s)**", f"**{r['throughput_fps']:.1f}**",
-         f">= {FPS_TARGET:.0f}"],
+        [
+            "**max rate: replay-to-graph throughput (frames/s)**",
+            f"**{r['throughput_fps']:.1f}**",
+            f">= {FPS_TARGET:.0f}",
+        ],
         ["max rate: decode p50 / p95 (ms, decoder thread)", _p(r["decode"]), ""],
         ["max rate: pipeline step p50 / p95 (ms, worker thread)", _p(r["graph"]), ""],
         [f"at {CAMERA_HZ:.0f} frames/s: processed / dropped", f"{r['paced_processed']} / {r['paced_dropped']}", ""],
         [f"at {CAMERA_HZ:.0f} frames/s: pipeline step p50 / p95 (ms)", _p(r["paced_graph"]), ""],
-        [f"**at {CAMERA_HZ:.0f} frames/s: ingest-to-graph latency p50 / p95 (ms)**",
-         f"**{_p(r['paced_latency'])}**", f"p95 <= {LATENCY_P95_TARGET_MS:.0f}"],
+        [
+            f"**at {CAMERA_HZ:.0f} frames/s: ingest-to-graph latency p50 / p95 (ms)**",
+            f"**{_p(r['paced_latency'])}**",
+            f"p95 <= {LATENCY_P95_TARGET_MS:.0f}",
+        ],
         ["machine load average during the runs (2 cores, shared)", f"{r['load']:.1f}", ""],
         ["CPU time stolen by the hypervisor during the runs (%)", f"{r['steal']:.1f}", ""],
     ]
     show_table(console, "replay-to-graph throughput and latency (zenoh, serve subprocess)", header, rows)
-    notes = ("Frames are rendered and encoded (JPEG colour, 16-bit PNG depth) before timing and carry odometry and "
-             "detections; `objslam serve` runs the default configuration (decode on its own thread; validation, "
-             "keyframing and iSAM2 on the worker; object association and clustering and loop verification of each "
-             "keyframe on the mapping thread, applied at the next keyframe) in a "
-             "subprocess behind a zenoh router in this process. Max rate: all frames published at once into a queue "
-             "that holds them all; throughput = frames / (first publish to last frame in the graph). Latency: a fresh "
-             f"service fed the same frames at {CAMERA_HZ:.0f} frames/s; ingest-to-graph = arrival in the subscriber "
-             "callback to the frame's graph update, queue wait and decoding included." + load_note(r["load"]))
-    path = record("throughput", "Replay-to-graph throughput and latency",
-                  f"objslam bench throughput --frames {frames} --dataset '{dataset}'", markdown_table(header, rows),
-                  notes, write)
+    notes = (
+        "Frames are rendered and encoded (JPEG colour, 16-bit PNG depth) before timing and carry odometry and "
+        "detections; `objslam serve` runs the default configuration (decode on its own thread; validation, "
+        "keyframing and iSAM2 on the worker; object association and clustering and loop verification of each "
+        "keyframe on the mapping thread, applied at the next keyframe) in a "
+        "subprocess behind a zenoh router in this process. Max rate: all frames published at once into a queue "
+        "that holds them all; throughput = frames / (first publish to last frame in the graph). Latency: a fresh "
+        f"service fed the same frames at {CAMERA_HZ:.0f} frames/s; ingest-to-graph = arrival in the subscriber "
+        "callback to the frame's graph update, queue wait and decoding included." + load_note(r["load"])
+    )
+    path = record(
+        "throughput",
+        "Replay-to-graph throughput and latency",
+        f"objslam bench throughput --frames {frames} --dataset '{dataset}'",
+        markdown_table(header, rows),
+        notes,
+        write,
+    )
     console.print(f"recorded in {path}")
     return r

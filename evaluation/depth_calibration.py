@@ -40,8 +40,9 @@ class DepthScaleEstimate:
         return nominal * self.ratio
 
 
-def translation_ratio(src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsics,
-                      T_dst_src: np.ndarray) -> float | None:
+def translation_ratio(
+    src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsics, T_dst_src: np.ndarray
+) -> float | None:
     """ICP translation / reference translation for one pair (None: ICP found too little overlap)."""
     result = icp_refine(src_depth_m, dst_depth_m, K, T_dst_src)
     if result is None:
@@ -49,8 +50,9 @@ def translation_ratio(src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intri
     return motion_magnitude(result.T)[0] / motion_magnitude(T_dst_src)[0]
 
 
-def estimate_depth_scale(pairs: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], K: Intrinsics,
-                         min_motion_m: float = 0.03) -> DepthScaleEstimate:
+def estimate_depth_scale(
+    pairs: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray]], K: Intrinsics, min_motion_m: float = 0.03
+) -> DepthScaleEstimate:
     """The depth scale against the reference from ``(src_depth_m, dst_depth_m, T_dst_src)`` pairs, where
     ``T_dst_src`` is the reference pose of the source camera in the destination camera. Pairs that moved less
     than ``min_motion_m`` are skipped (their ratio is mostly noise). Raises ValueError when no pair is usable."""

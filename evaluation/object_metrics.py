@@ -26,8 +26,10 @@ class MappedObject:
 def aligned_objects(entries: list[dict[str, Any]], T: np.ndarray) -> list[MappedObject]:
     """``objects.json`` entries moved by the rigid transform ``T`` (e.g. the trajectory's ATE alignment)."""
     R, t = T[:3, :3], T[:3, 3]
-    return [MappedObject(e["label"], R @ np.asarray(e["mean"], float) + t, R @ np.asarray(e["cov"], float) @ R.T)
-            for e in entries]
+    return [
+        MappedObject(e["label"], R @ np.asarray(e["mean"], float) + t, R @ np.asarray(e["cov"], float) @ R.T)
+        for e in entries
+    ]
 
 
 def ellipse_box_iou(mean: np.ndarray, cov: np.ndarray, scale: float, truth: ObjectTruth, res: float = 0.01) -> float:
@@ -71,6 +73,12 @@ def object_scores(objects: list, truth: list[ObjectTruth], axis_scale: float) ->
     matches = match_objects(objects, truth)
     ious = [ellipse_box_iou(objects[a].mean, objects[a].cov, axis_scale, truth[b]) for a, b in matches]
     errors = [float(np.linalg.norm(objects[a].mean - np.asarray(truth[b].center))) for a, b in matches]
-    return {"ground_truth": len(truth), "mapped": len(objects), "matched": len(matches),
-            "false": len(objects) - len(matches), "mean_iou": float(np.mean(ious)) if ious else None,
-            "median_centroid_error_m": float(np.median(errors)) if errors else None, "axis_scale": axis_scale}
+    return {
+        "ground_truth": len(truth),
+        "mapped": len(objects),
+        "matched": len(matches),
+        "false": len(objects) - len(matches),
+        "mean_iou": float(np.mean(ious)) if ious else None,
+        "median_centroid_error_m": float(np.median(errors)) if errors else None,
+        "axis_scale": axis_scale,
+    }

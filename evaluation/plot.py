@@ -7,15 +7,15 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
 
 def plot_errors(path: Path, series: dict[str, tuple[np.ndarray, np.ndarray]], title: str) -> None:
     """One line per trajectory: time (s) against position error (cm), its RMSE in the legend."""
     fig, ax = plt.subplots(figsize=(8, 3.5))
     for name, (t, err) in series.items():
-        rmse = float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan")
+        rmse = float(np.sqrt(np.mean(err**2))) if len(err) else float("nan")
         ax.plot(t - t[0] if len(t) else t, err * 100, lw=1, label=f"{name} (ATE RMSE {rmse * 100:.2f} cm)")
     ax.set_xlabel("time (s)")
     ax.set_ylabel("position error (cm)")

@@ -59,8 +59,9 @@ class PairCheck:
         return self.residual_ref_m > self.residual_still_m
 
 
-def depth_residual(src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsics, T_dst_src: np.ndarray,
-                   step: int = 2) -> float:
+def depth_residual(
+    src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsics, T_dst_src: np.ndarray, step: int = 2
+) -> float:
     """Median |depth difference| (m) of ``src`` depth moved by ``T_dst_src`` into the ``dst`` image, over every
     ``step``-th source pixel that lands on valid destination depth; NaN when none does."""
     p = vertex_map(src_depth_m, K)[::step, ::step].reshape(-1, 3)
@@ -73,22 +74,25 @@ def depth_residual(src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsi
     return float(np.median(np.abs(z[seen] - p[ok][seen, 2])))
 
 
-def depth_optimum(src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsics,
-                  T_init: np.ndarray) -> np.ndarray | None:
+def depth_optimum(
+    src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsics, T_init: np.ndarray
+) -> np.ndarray | None:
     """``T_dst_src`` where the two depth images agree best near ``T_init`` (coarse-to-fine point-to-plane ICP);
     None when too little of them overlaps."""
     T = T_init
     for level, iterations, gate in PYRAMID:
-        result = icp_refine(src_depth_m, dst_depth_m, K, T, level=level, step=1, iterations=iterations,
-                            max_dist=gate, min_inliers=100)
+        result = icp_refine(
+            src_depth_m, dst_depth_m, K, T, level=level, step=1, iterations=iterations, max_dist=gate, min_inliers=100
+        )
         if result is None:
             return None
         T = result.T
     return T
 
 
-def check_pair(src: int, dst: int, src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsics,
-               T_ref: np.ndarray) -> PairCheck:
+def check_pair(
+    src: int, dst: int, src_depth_m: np.ndarray, dst_depth_m: np.ndarray, K: Intrinsics, T_ref: np.ndarray
+) -> PairCheck:
     """The reference motion ``T_ref`` (source points into the destination camera) against the depth. When ICP
     started at the reference finds too little overlap, it is started again at no motion."""
     T_depth = depth_optimum(src_depth_m, dst_depth_m, K, T_ref)
@@ -99,12 +103,22 @@ def check_pair(src: int, dst: int, src_depth_m: np.ndarray, dst_depth_m: np.ndar
     if T_depth is None:
         return PairCheck(src, dst, T_ref, None, ref, float("nan"), still, float("nan"), float("nan"))
     dt, dr = motion_magnitude(relative(T_ref, T_depth))
-    return PairCheck(src, dst, T_ref, T_depth, ref, depth_residual(src_depth_m, dst_depth_m, K, T_depth), still,
-                     dt, float(np.degrees(dr)))
+    return PairCheck(
+        src,
+        dst,
+        T_ref,
+        T_depth,
+        ref,
+        depth_residual(src_depth_m, dst_depth_m, K, T_depth),
+        still,
+        dt,
+        float(np.degrees(dr)),
+    )
 
 
-def repaired(reference: np.ndarray, checks: list[PairCheck], margin_m: float,
-             first_frame: int = 0) -> tuple[np.ndarray, list[int]]:
+def repaired(
+    reference: np.ndarray, checks: list[PairCheck], margin_m: float, first_frame: int = 0
+) -> tuple[np.ndarray, list[int]]:
     """The reference poses (N, 4, 4, camera to world; pose k is frame ``first_frame + k``) with every refuted
     step ``i -> i + 1`` among ``checks`` replaced by the depth's motion; frames before such a step are moved with
     it (the newest part of the trajectory keeps its place). Returns the poses and the refuted steps' first

@@ -73,7 +73,13 @@ def evaluate(traj: Trajectory, gt: Trajectory | None) -> TrajectoryError | None:
 
 
 def error_dict(err: TrajectoryError) -> dict[str, float]:
-    return {"pairs": err.pairs, "ate_rmse_m": err.ate_rmse_m, "ate_mean_m": err.ate_mean_m,
-            "ate_median_m": err.ate_median_m, "ate_max_m": err.ate_max_m,
-            "rpe_trans_rmse_m": err.rpe_trans_rmse_m, "rpe_rot_rmse_deg": err.rpe_rot_rmse_deg,
-            "alignment": np.asarray(err.alignment, float).tolist()}
+    return {
+        "pairs": err.pairs,
+        "ate_rmse_m": err.ate_rmse_m,
+        "ate_mean_m": err.ate_mean_m,
+        "ate_median_m": err.ate_median_m,
+        "ate_max_m": err.ate_max_m,
+        "rpe_trans_rmse_m": err.rpe_trans_rmse_m,
+        "rpe_rot_rmse_deg": err.rpe_rot_rmse_deg,
+        "alignment": np.asarray(err.alignment, float).tolist(),
+    }

@@ -64,13 +64,24 @@ class FactorRecord:
         m = self.measurement
         if self.kind == LANDMARK:
             if self.b < 0:
-                noise = gtsam.noiseModel.Isotropic.Sigma(3, self.sigma_m) if self.covariance is None \
+                noise = (
+                    gtsam.noiseModel.Isotropic.Sigma(3, self.sigma_m)
+                    if self.covariance is None
                     else gtsam.noiseModel.Gaussian.Covariance(np.asarray(self.covariance, float))
+                )
                 return gtsam.PriorFactorPoint3(L(self.a), m, self._robust(noise))
-            return gtsam.BearingRangeFactor3D(X(self.a), L(self.b), gtsam.Unit3(m), float(np.linalg.norm(m)),
-                                              self._robust(position_noise(m, self.sigma_m, self.range_sigma_m)))
-        noise = self._robust(pose_noise(self.sigma_m, self.sigma_deg) if self.covariance is None
-                             else gtsam.noiseModel.Gaussian.Covariance(np.asarray(self.covariance, float)))
+            return gtsam.BearingRangeFactor3D(
+                X(self.a),
+                L(self.b),
+                gtsam.Unit3(m),
+                float(np.linalg.norm(m)),
+                self._robust(position_noise(m, self.sigma_m, self.range_sigma_m)),
+            )
+        noise = self._robust(
+            pose_noise(self.sigma_m, self.sigma_deg)
+            if self.covariance is None
+            else gtsam.noiseModel.Gaussian.Covariance(np.asarray(self.covariance, float))
+        )
         if self.b < 0:
             return gtsam.PriorFactorPose3(X(self.a), gtsam.Pose3(m), noise)
         return gtsam.BetweenFactorPose3(X(self.a), X(self.b), gtsam.Pose3(m), noise)
@@ -90,14 +101,17 @@ def to_columns(records: list[FactorRecord]) -> dict[str, np.ndarray]:
             measurement[i, :3, 3] = r.measurement
         else:
             measurement[i] = r.measurement
-    return {"a": np.array([r.a for r in records], np.int64), "b": np.array([r.b for r in records], np.int64),
-            "measurement": measurement, "sigma_m": np.array([r.sigma_m for r in records], float),
-            "sigma_deg": np.array([r.sigma_deg for r in records], float),
-            "huber_k": np.array([np.nan if r.huber_k is None else r.huber_k for r in records], float),
-            "kind": np.array([r.kind for r in records], np.int64),
-            "covariance": np.array([_covariance_column(r.covariance) for r in records], float).reshape(-1, 6, 6),
-            "range_sigma_m": np.array([np.nan if r.range_sigma_m is None else r.range_sigma_m for r in records],
-                                      float)}
+    return {
+        "a": np.array([r.a for r in records], np.int64),
+        "b": np.array([r.b for r in records], np.int64),
+        "measurement": measurement,
+        "sigma_m": np.array([r.sigma_m for r in records], float),
+        "sigma_deg": np.array([r.sigma_deg for r in records], float),
+        "huber_k": np.array([np.nan if r.huber_k is None else r.huber_k for r in records], float),
+        "kind": np.array([r.kind for r in records], np.int64),
+        "covariance": np.array([_covariance_column(r.covariance) for r in records], float).reshape(-1, 6, 6),
+        "range_sigma_m": np.array([np.nan if r.range_sigma_m is None else r.range_sigma_m for r in records], float),
+    }
 
 
 def _covariance_column(covariance: np.ndarray | None) -> np.ndarray:
@@ -116,9 +130,19 @@ def from_columns(c: dict[str, Any]) -> list[FactorRecord]:
     kinds = c.get("kind", np.zeros(n, np.int64))
     covariances = c.get("covariance", np.full((n, 6, 6), np.nan))
     ranges = c.get("range_sigma_m", np.full(n, np.nan))
-    return [FactorRecord(int(a), int(b), m[:3, 3].copy() if kind == LANDMARK else m, float(sm), float(sd),
-                         None if np.isnan(k) else float(k), int(kind),
-                         None if np.isnan(cov).any() else (cov[:3, :3].copy() if kind == LANDMARK else cov),
-                         None if np.isnan(rs) else float(rs))
-            for a, b, m, sm, sd, k, kind, cov, rs in zip(c["a"], c["b"], c["measurement"], c["sigma_m"],
-                                                         c["sigma_deg"], c["huber_k"], kinds, covariances, ranges)]
+    return [
+        FactorRecord(
+            int(a),
+            int(b),
+            m[:3, 3].copy() if kind == LANDMARK else m,
+            float(sm),
+            float(sd),
+            None if np.isnan(k) else float(k),
+            int(kind),
+            None if np.isnan(cov).any() else (cov[:3, :3].copy() if kind == LANDMARK else cov),
+            None if np.isnan(rs) else float(rs),
+        )
+        for a, b, m, sm, sd, k, kind, cov, rs in zip(
+            c["a"], c["b"], c["measurement"], c["sigma_m"], c["sigma_deg"], c["huber_k"], kinds, covariances, ranges
+        )
+    ]

@@ -20,8 +20,13 @@ class Keyframes:
         """Current estimate of the newest keyframe."""
         return self.pose(self.num_keyframes - 1)
 
-    def _record(self, factors: list[FactorRecord], poses: list[np.ndarray], landmarks: list[tuple[int, np.ndarray]],
-                remove: list[int]) -> None:
+    def _record(
+        self,
+        factors: list[FactorRecord],
+        poses: list[np.ndarray],
+        landmarks: list[tuple[int, np.ndarray]],
+        remove: list[int],
+    ) -> None:
         """The books of a successful update: records (index = factor index), guesses, the log, counters."""
         self.factors.extend(factors)
         self._initial.extend(np.asarray(p, float) for p in poses)
@@ -41,8 +46,9 @@ class Keyframes:
         if self.num_keyframes:
             raise ValueError("the graph already has a first keyframe")
         n = self.noise
-        self._update([FactorRecord(0, -1, np.array(pose, float), n.prior_sigma_m, n.prior_sigma_deg)],
-                     [np.array(pose, float)])
+        self._update(
+            [FactorRecord(0, -1, np.array(pose, float), n.prior_sigma_m, n.prior_sigma_deg)], [np.array(pose, float)]
+        )
         return 0
 
     def add_keyframe(self, relative: np.ndarray, sigma_m: float | None = None, sigma_deg: float | None = None) -> int:
@@ -65,8 +71,16 @@ class Keyframes:
         result = self._update([FactorRecord(k_a, k_b, np.array(T_a_b, float), sigma_m, sigma_deg)])
         return int(result.getNewFactorsIndices()[0])
 
-    def add_loop(self, k_a: int, k_b: int, T_a_b: np.ndarray, sigma_m: float, sigma_deg: float,
-                 robust_k: float = 3.0, iterations: int = 10) -> int:
+    def add_loop(
+        self,
+        k_a: int,
+        k_b: int,
+        T_a_b: np.ndarray,
+        sigma_m: float,
+        sigma_deg: float,
+        robust_k: float = 3.0,
+        iterations: int = 10,
+    ) -> int:
         """Add a loop-closure between-factor (pose of b in a) under a Huber kernel; returns its factor index.
 
         Huber rather than Cauchy: after long drift a true loop starts tens of sigmas away, where Cauchy's
@@ -89,4 +103,3 @@ class Keyframes:
         """Retract factors (e.g. a loop closure found inconsistent) through iSAM2's removeFactorIndices."""
         self._update([], remove=indices)
         self._converge(10)
-

@@ -39,8 +39,9 @@ class Landmarks:
             self._insert_landmark(j, prior)
         return True
 
-    def add_landmark_observation(self, j: int, k: int, p_cam: np.ndarray, sigma_m: float,
-                                 huber_k: float | None = None) -> int | None:
+    def add_landmark_observation(
+        self, j: int, k: int, p_cam: np.ndarray, sigma_m: float, huber_k: float | None = None
+    ) -> int | None:
         """Landmark ``j`` seen at ``p_cam`` (metres, keyframe ``k``'s camera frame) with isotropic ``sigma_m``.
 
         Returns the factor index, or None while the landmark waits to be observable: its observations are
@@ -48,8 +49,9 @@ class Landmarks:
         """
         return self.add_landmark_observations(k, [(j, p_cam)], sigma_m, huber_k)[0]
 
-    def add_landmark_observations(self, k: int, observations: list[tuple[int, np.ndarray]], sigma_m: float,
-                                  huber_k: float | None = None) -> list[int | None]:
+    def add_landmark_observations(
+        self, k: int, observations: list[tuple[int, np.ndarray]], sigma_m: float, huber_k: float | None = None
+    ) -> list[int | None]:
         """Several landmarks seen from keyframe ``k`` (``(j, p_cam)`` pairs), in one iSAM2 update.
 
         Landmarks that become observable enter with their held-back observations; the factor index of each
@@ -57,17 +59,24 @@ class Landmarks:
         """
         return self.add_landmark_measurements([(k, j, p) for j, p in observations], sigma_m, huber_k)
 
-    def add_landmark_measurements(self, items: list[tuple[int, int, np.ndarray]], sigma_m: float | list[float],
-                                  huber_k: float | None = None,
-                                  range_sigma_m: float | list[float] | None = None) -> list[int | None]:
+    def add_landmark_measurements(
+        self,
+        items: list[tuple[int, int, np.ndarray]],
+        sigma_m: float | list[float],
+        huber_k: float | None = None,
+        range_sigma_m: float | list[float] | None = None,
+    ) -> list[int | None]:
         """Landmark measurements ``(k, j, p_cam)`` from any keyframes, in one iSAM2 update (see above).
 
         ``sigma_m``: one sigma for all, or one per measurement; ``range_sigma_m`` likewise, the sigma along the
         viewing ray (None: ``sigma_m``, isotropic).
         """
         sigmas = np.broadcast_to(np.asarray(sigma_m, float), (len(items),))
-        ranges = [None] * len(items) if range_sigma_m is None else \
-            np.broadcast_to(np.asarray(range_sigma_m, float), (len(items),)).tolist()
+        ranges = (
+            [None] * len(items)
+            if range_sigma_m is None
+            else np.broadcast_to(np.asarray(range_sigma_m, float), (len(items),)).tolist()
+        )
         records = []
         for (k, j, p_cam), sigma, along in zip(items, sigmas, ranges):
             if not 0 <= k < self.num_keyframes:
@@ -127,8 +136,11 @@ class Landmarks:
 
     def landmark_factor_indices(self, landmarks: set[int]) -> dict[tuple[int, int, bytes], int]:
         """Factor index of each live measurement of these landmarks, by (landmark, keyframe, measurement bytes)."""
-        return {(f.b, f.a, f.measurement.tobytes()): i for i, f in enumerate(self.factors)
-                if f.kind == LANDMARK and f.b in landmarks and i not in self._removed}
+        return {
+            (f.b, f.a, f.measurement.tobytes()): i
+            for i, f in enumerate(self.factors)
+            if f.kind == LANDMARK and f.b in landmarks and i not in self._removed
+        }
 
     @property
     def num_landmarks(self) -> int:
@@ -150,8 +162,10 @@ class Landmarks:
         """Landmarks left without factors: iSAM2 removed their variables, so they wait to be observable again."""
         touched = {f.a if f.b < 0 else f.b for f in (self.factors[i] for i in removed) if f.kind == LANDMARK}
         for j in touched & self._landmarks.keys():
-            if not any(f.kind == LANDMARK and (f.a if f.b < 0 else f.b) == j and i not in self._removed
-                       for i, f in enumerate(self.factors)):
+            if not any(
+                f.kind == LANDMARK and (f.a if f.b < 0 else f.b) == j and i not in self._removed
+                for i, f in enumerate(self.factors)
+            ):
                 del self._landmarks[j]
                 self._pending[j] = []
                 log.info("landmark %d lost its last factor: out of the solver until observable again", j)

@@ -80,13 +80,13 @@ class ObjectLandmarks:
 
         Returns (added, retracted) measurement counts.
         """
-        mapping = {t: o.id for o in objects if o.n_observations >= self.config.landmark_min_support
-                   for t in o.tracks}
+        mapping = {t: o.id for o in objects if o.n_observations >= self.config.landmark_min_support for t in o.tracks}
         stale = [key for key, (j, _) in self.assigned.items() if mapping.get(key[1]) != j]
         self._retract(stale)
         self.track_landmark = mapping
-        missing = [(key, mapping[key[1]]) for key in self.measurements
-                   if key[1] in mapping and key not in self.assigned]
+        missing = [
+            (key, mapping[key[1]]) for key in self.measurements if key[1] in mapping and key not in self.assigned
+        ]
         return self._add(missing), len(stale)
 
     def positions(self) -> dict[int, np.ndarray]:
@@ -102,8 +102,11 @@ class ObjectLandmarks:
         try:
             m = [self.measurements[key] for key, _ in items]
             indices = self.graph.add_landmark_measurements(
-                [(k, j, x[:3]) for ((k, _), j), x in zip(items, m)], [x[3] for x in m], self.config.landmark_huber_k,
-                [self.config.landmark_range_scale * x[3] for x in m])
+                [(k, j, x[:3]) for ((k, _), j), x in zip(items, m)],
+                [x[3] for x in m],
+                self.config.landmark_huber_k,
+                [self.config.landmark_range_scale * x[3] for x in m],
+            )
         except SolverError as exc:
             self.failures += 1
             log.error("object landmark measurements rejected by the solver (%d items): %s", len(items), exc)
@@ -138,8 +141,12 @@ class ObjectLandmarks:
                 log.error("retracting %d object landmark measurements failed: %s", len(indices), exc)
 
     def state(self) -> dict:
-        return {"measurements": self.measurements, "assigned": self.assigned, "track_landmark": self.track_landmark,
-                "failures": self.failures}
+        return {
+            "measurements": self.measurements,
+            "assigned": self.assigned,
+            "track_landmark": self.track_landmark,
+            "failures": self.failures,
+        }
 
     def restore(self, state: dict) -> None:
         self.measurements, self.assigned = state["measurements"], state["assigned"]

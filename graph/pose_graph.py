@@ -135,8 +135,13 @@ class PoseGraph(Keyframes, Landmarks):
 
     # ------------------------------------------------------------ updates
 
-    def _update(self, factors: list[FactorRecord], poses: list[np.ndarray] = (),
-                landmarks: list[tuple[int, np.ndarray]] = (), remove: list[int] | None = None) -> gtsam.ISAM2Result:
+    def _update(
+        self,
+        factors: list[FactorRecord],
+        poses: list[np.ndarray] = (),
+        landmarks: list[tuple[int, np.ndarray]] = (),
+        remove: list[int] | None = None,
+    ) -> gtsam.ISAM2Result:
         """One iSAM2 update: new factors, guesses of the next keyframes and of new landmarks, factors to remove.
 
         When iSAM2 throws, the solver is rebuilt from the log (without this update) and SolverError raised. An
@@ -148,8 +153,10 @@ class PoseGraph(Keyframes, Landmarks):
         except RuntimeError as exc:
             error = exc
         if self.factorization == "CHOLESKY" and "ndetermina" in str(error):
-            log.warning("iSAM2 found the system indeterminant with Cholesky; rebuilding with QR factorization "
-                        "(numerically stabler on long chains without loop closures) and retrying")
+            log.warning(
+                "iSAM2 found the system indeterminant with Cholesky; rebuilding with QR factorization "
+                "(numerically stabler on long chains without loop closures) and retrying"
+            )
             self.factorization = "QR"
             self._rebuild()
             try:
@@ -160,8 +167,13 @@ class PoseGraph(Keyframes, Landmarks):
         self._rebuild()
         raise SolverError(str(error)) from error
 
-    def _apply(self, factors: list[FactorRecord], poses: list[np.ndarray], landmarks: list[tuple[int, np.ndarray]],
-               remove: list[int]) -> gtsam.ISAM2Result:
+    def _apply(
+        self,
+        factors: list[FactorRecord],
+        poses: list[np.ndarray],
+        landmarks: list[tuple[int, np.ndarray]],
+        remove: list[int],
+    ) -> gtsam.ISAM2Result:
         """The iSAM2 update itself, and on success its bookkeeping (records, log, counters)."""
         graph = gtsam.NonlinearFactorGraph()
         for f in factors:
@@ -194,12 +206,17 @@ class PoseGraph(Keyframes, Landmarks):
         self._landmarks, self._removed, self._estimate, self._latest = {}, set(), None, np.eye(4)
         self.num_keyframes = self.num_factors = self.updates = 0
 
-    def _replay(self, entries: list[Update], factors: list[FactorRecord], initial: list[np.ndarray],
-                landmark_initial: list[np.ndarray]) -> None:
+    def _replay(
+        self,
+        entries: list[Update],
+        factors: list[FactorRecord],
+        initial: list[np.ndarray],
+        landmark_initial: list[np.ndarray],
+    ) -> None:
         nf = nv = nl = 0
         for n_factors, n_poses, removed, landmark_ids in entries:
-            landmarks = list(zip(landmark_ids, landmark_initial[nl:nl + len(landmark_ids)]))
-            self._apply(factors[nf:nf + n_factors], initial[nv:nv + n_poses], landmarks, list(removed))
+            landmarks = list(zip(landmark_ids, landmark_initial[nl : nl + len(landmark_ids)]))
+            self._apply(factors[nf : nf + n_factors], initial[nv : nv + n_poses], landmarks, list(removed))
             nf, nv, nl = nf + n_factors, nv + n_poses, nl + len(landmark_ids)
 
     # ------------------------------------------------------------ plain state
@@ -232,8 +249,9 @@ class PoseGraph(Keyframes, Landmarks):
         if state.get("factorization", "CHOLESKY") != graph.factorization:
             graph.factorization = state["factorization"]
             graph.isam = graph._new_isam()
-        entries, factors, initial = _without_failed(state["updates"], from_columns(state["factors"]),
-                                                    list(state["initial"]))
+        entries, factors, initial = _without_failed(
+            state["updates"], from_columns(state["factors"]), list(state["initial"])
+        )
         try:
             graph._replay(entries, factors, initial, list(state.get("landmark_initial", [])))
         except RuntimeError as exc:
@@ -246,8 +264,9 @@ class PoseGraph(Keyframes, Landmarks):
         return graph
 
 
-def _without_failed(entries: list, factors: list[FactorRecord],
-                    initial: list[np.ndarray]) -> tuple[list[Update], list[FactorRecord], list[np.ndarray]]:
+def _without_failed(
+    entries: list, factors: list[FactorRecord], initial: list[np.ndarray]
+) -> tuple[list[Update], list[FactorRecord], list[np.ndarray]]:
     """The update log in the current form. Logs from before landmarks are ``(factors, poses, removed, ok)``
     and kept failed updates, whose factors and guesses are dropped here (the solver no longer keeps them)."""
     if not entries or not isinstance(entries[0][3], (bool, np.bool_)):
@@ -259,8 +278,8 @@ def _without_failed(entries: list, factors: list[FactorRecord],
     for n_factors, n_poses, removed, ok in entries:
         if ok:
             kept.append((n_factors, n_poses, tuple(removed), ()))
-            kept_factors += factors[nf:nf + n_factors]
-            kept_initial += initial[nv:nv + n_poses]
+            kept_factors += factors[nf : nf + n_factors]
+            kept_initial += initial[nv : nv + n_poses]
         else:
             log.warning("dropping a failed iSAM2 update of an old snapshot (%d factors, %d poses)", n_factors, n_poses)
         nf, nv = nf + n_factors, nv + n_poses

@@ -18,7 +18,6 @@ class Trajectory:
         return len(self.timestamps)
 
 
-
 def nearest_timestamps(times_a: np.ndarray, times_b: np.ndarray, max_diff: float) -> np.ndarray:
     """For each time in ``times_a`` the index of the nearest time in ``times_b``, or -1 beyond ``max_diff``."""
     times_a, times_b = np.asarray(times_a, float), np.asarray(times_b, float)

@@ -73,7 +73,7 @@ class _Result:
     def __init__(self, indices: list[int]):
         self._indices = indices
 
-    def getNewFactorsIndices(self) -> list[int]:  # noqa: N802 (gtsam's name)
+    def getNewFactorsIndices(self) -> list[int]:
         return self._indices
 
 
@@ -143,8 +143,13 @@ class WindowedGraph(Keyframes, Landmarks):
 
     # ------------------------------------------------------------ the update
 
-    def _update(self, factors: list[FactorRecord], poses: list[np.ndarray] = (),
-                landmarks: list[tuple[int, np.ndarray]] = (), remove: list[int] | None = None) -> _Result:
+    def _update(
+        self,
+        factors: list[FactorRecord],
+        poses: list[np.ndarray] = (),
+        landmarks: list[tuple[int, np.ndarray]] = (),
+        remove: list[int] | None = None,
+    ) -> _Result:
         """One update of the window (factors in global ids), recorded and passed on to the whole graph."""
         remove = list(remove or [])
         first, new = len(self.factors), {j for j, _ in landmarks}
@@ -165,8 +170,9 @@ class WindowedGraph(Keyframes, Landmarks):
                 local.append(r)
                 owners.append(i)
         local_remove = [self._to_local[i] for i in remove if i in self._to_local]
-        result = self.local._update(local, [np.asarray(p, float) for p in poses], list(local_landmarks.items()),
-                                    local_remove)
+        result = self.local._update(
+            local, [np.asarray(p, float) for p in poses], list(local_landmarks.items()), local_remove
+        )
         for i, li in zip(owners, result.getNewFactorsIndices()):
             self._to_local[i] = int(li)
         for i in remove:
@@ -209,8 +215,11 @@ class WindowedGraph(Keyframes, Landmarks):
                 return replace(f, a=f.a - s)
             T = fixed[f.a]
             R = T[:3, :3]
-            covariance = None if f.range_sigma_m is None else \
-                R @ position_covariance(f.measurement, f.sigma_m, f.range_sigma_m) @ R.T
+            covariance = (
+                None
+                if f.range_sigma_m is None
+                else R @ position_covariance(f.measurement, f.sigma_m, f.range_sigma_m) @ R.T
+            )
             return FactorRecord(f.b, -1, R @ f.measurement + T[:3, 3], f.sigma_m, 0.0, f.huber_k, LANDMARK, covariance)
         if f.b < 0:
             return replace(f, a=f.a - s) if f.a >= s else None
@@ -221,8 +230,13 @@ class WindowedGraph(Keyframes, Landmarks):
         if f.a >= s:  # the prior's error is -Ad(T_ab) times the between-factor's: its covariance transformed so
             adjoint = gtsam.Pose3(f.measurement).AdjointMap()
             covariance = f.covariance if f.covariance is not None else pose_noise(f.sigma_m, f.sigma_deg).covariance()
-            return replace(f, b=-1, a=f.a - s, measurement=fixed[f.b] @ np.linalg.inv(f.measurement),
-                           covariance=adjoint @ covariance @ adjoint.T)
+            return replace(
+                f,
+                b=-1,
+                a=f.a - s,
+                measurement=fixed[f.b] @ np.linalg.inv(f.measurement),
+                covariance=adjoint @ covariance @ adjoint.T,
+            )
         return None
 
     # ------------------------------------------------------------ rolling and re-anchoring
@@ -255,8 +269,9 @@ class WindowedGraph(Keyframes, Landmarks):
             log.error("cannot start the whole-graph child process: %s", exc)
         return self._global
 
-    def _anchored(self, solved: tuple[np.ndarray, dict[int, np.ndarray]] | None
-                  ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    def _anchored(
+        self, solved: tuple[np.ndarray, dict[int, np.ndarray]] | None
+    ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
         """Every keyframe and landmark estimate, from a whole-graph solve where it has them: keyframes and
         landmarks that came later move rigidly with the newest solved keyframe."""
         current, landmarks = self.poses(), self.landmarks()
@@ -279,8 +294,9 @@ class WindowedGraph(Keyframes, Landmarks):
         indices = sorted({i for k in window for i in self._by_keyframe.get(k, []) if i not in self._removed})
         kept = {f.b for f in (self.factors[i] for i in indices) if f.kind == LANDMARK and f.b >= 0 and f.a >= start}
         kept &= self._landmarks.keys()
-        indices = sorted(set(indices) | {i for j in kept for i in self._by_landmark.get(j, [])
-                                         if i not in self._removed})
+        indices = sorted(
+            set(indices) | {i for j in kept for i in self._by_landmark.get(j, []) if i not in self._removed}
+        )
         local, owners = [], []
         for i in indices:
             if (r := self._localize(self.factors[i], kept)) is not None:
@@ -315,8 +331,11 @@ class WindowedGraph(Keyframes, Landmarks):
         child.request(exact=True)
         solved = child.receive(timeout)
         if child.outstanding or solved is None:
-            log.warning("the whole graph's batch optimum did not come back within %.0f s%s", timeout,
-                        "; re-anchoring at its last estimate" if solved is not None else "")
+            log.warning(
+                "the whole graph's batch optimum did not come back within %.0f s%s",
+                timeout,
+                "; re-anchoring at its last estimate" if solved is not None else "",
+            )
         if solved is not None and self._rebuild(self.start, *self._anchored(solved)):
             self.global_solves += 1
 
@@ -338,15 +357,23 @@ class WindowedGraph(Keyframes, Landmarks):
         landmarks in the solver and the removed factors; once rebuilt, also the fixed keyframes and frozen
         landmarks, the window's own iSAM2 (its ``PoseGraph.state()``, replayed as it is) and which of its
         factors is which (before that the window is the whole graph, replayed from the log)."""
-        window = {"settings": asdict(self.window), "start": self.start,
-                  "landmarks": np.array(sorted(self._landmarks), np.int64),
-                  "removed": np.array(sorted(self._removed), np.int64)}
+        window = {
+            "settings": asdict(self.window),
+            "start": self.start,
+            "landmarks": np.array(sorted(self._landmarks), np.int64),
+            "removed": np.array(sorted(self._removed), np.int64),
+        }
         if self.rebuilt:
             frozen = sorted(self._frozen)
-            window.update({"fixed": self._fixed.copy(), "frozen": np.array(frozen, np.int64),
-                           "frozen_estimates": np.array([self._frozen[j] for j in frozen]).reshape(-1, 3),
-                           "local": self.local.state(),
-                           "to_local": np.array(sorted(self._to_local.items()), np.int64).reshape(-1, 2)})
+            window.update(
+                {
+                    "fixed": self._fixed.copy(),
+                    "frozen": np.array(frozen, np.int64),
+                    "frozen_estimates": np.array([self._frozen[j] for j in frozen]).reshape(-1, 3),
+                    "local": self.local.state(),
+                    "to_local": np.array(sorted(self._to_local.items()), np.int64).reshape(-1, 2),
+                }
+            )
         return {**PoseGraph.state(self), "window": window}  # the replay log's fields, kept here under the same names
 
     @classmethod
@@ -366,8 +393,11 @@ class WindowedGraph(Keyframes, Landmarks):
             graph._landmarks, graph._pending = dict(local._landmarks), local._pending
             local._pending = {}  # held-back observations are the graph's (the mixin of each keeps its own)
             graph._removed = set(local._removed)
-            graph.num_keyframes, graph.num_factors, graph.updates = local.num_keyframes, local.num_factors, \
-                local.updates
+            graph.num_keyframes, graph.num_factors, graph.updates = (
+                local.num_keyframes,
+                local.num_factors,
+                local.updates,
+            )
             graph._to_local = {i: i for i in range(len(local.factors)) if i not in local._removed}
             graph._index(graph.factors, 0)
             return graph
@@ -418,8 +448,9 @@ class _GlobalSolver:
         ours, theirs = socket.socketpair()
         root = str(Path(__file__).resolve().parent.parent)
         env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH")) if p)}
-        self._process = subprocess.Popen([sys.executable, "-m", "graph.window", str(theirs.fileno())],
-                                         pass_fds=[theirs.fileno()], env=env)
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "graph.window", str(theirs.fileno())], pass_fds=[theirs.fileno()], env=env
+        )
         theirs.close()
         self._conn = Connection(ours.detach())
         self._asked = self._answered = 0
@@ -432,8 +463,16 @@ class _GlobalSolver:
         threading.Thread(target=self._read, name="objslam-global-graph-in", daemon=True).start()
         threading.Thread(target=self._write, name="objslam-global-graph-out", daemon=True).start()
         # the history so far, replayed by the child before anything else
-        self._outbox.put(("replay", graph.noise, list(graph.factors), list(graph._initial),
-                          list(graph._landmark_initial), list(graph._log)))
+        self._outbox.put(
+            (
+                "replay",
+                graph.noise,
+                list(graph.factors),
+                list(graph._initial),
+                list(graph._landmark_initial),
+                list(graph._log),
+            )
+        )
 
     def _write(self) -> None:
         """Messages go out from this thread: the window never waits for the child to read."""

@@ -19,8 +19,8 @@ import numpy as np
 from graph.geometry import motion_magnitude, pose_to_tum, relative
 from graph.pose_graph import PoseGraph
 from graph.window import WindowedGraph
-from perception.odometry import Features, Rejected, Relative, RelativePoseEstimator
 from loops.place_recognition import PlaceIndex, global_descriptor
+from perception.odometry import Features, Rejected, Relative, RelativePoseEstimator
 
 log = logging.getLogger(__name__)
 
@@ -82,8 +82,12 @@ class LoopCloser:
         self.places = PlaceIndex()
         self.keyframes: dict[int, KeyframeEntry] = {}
         c = self.config
-        self.verify_config = replace(self.estimator.config, min_matches=c.min_inliers, min_inliers=c.min_inliers,
-                                     max_residual_px=c.max_residual_px)
+        self.verify_config = replace(
+            self.estimator.config,
+            min_matches=c.min_inliers,
+            min_inliers=c.min_inliers,
+            max_residual_px=c.max_residual_px,
+        )
 
     @property
     def n_accepted(self) -> int:
@@ -95,22 +99,32 @@ class LoopCloser:
 
     def state(self) -> dict[str, Any]:
         """Plain state: loop records, accepted factors, place descriptors and keyframe features."""
-        return {"records": self.records, "accepted": self.accepted, "places": self.places.state(),
-                "keyframes": list(self.keyframes.values())}
+        return {
+            "records": self.records,
+            "accepted": self.accepted,
+            "places": self.places.state(),
+            "keyframes": list(self.keyframes.values()),
+        }
 
     def restore(self, state: dict[str, Any]) -> None:
         self.records, self.accepted = state["records"], state["accepted"]
         self.places.restore(state["places"])
         self.keyframes = {e.index: e for e in state["keyframes"]}
 
-    def add_keyframe(self, entry: KeyframeEntry, rgb: np.ndarray,
-                     proposed: list[tuple[int, str, float]] = ()) -> list[dict[str, Any]]:
+    def add_keyframe(
+        self, entry: KeyframeEntry, rgb: np.ndarray, proposed: list[tuple[int, str, float]] = ()
+    ) -> list[dict[str, Any]]:
         """Store the keyframe, try its candidates, and return the new loop records (``verify`` + ``accept``)."""
         poses = self.graph.poses() if self.config.proximity else None
         return self.accept(self.verify(entry, rgb, proposed, poses))
 
-    def verify(self, entry: KeyframeEntry, rgb: np.ndarray, proposed: list[tuple[int, str, float]] = (),
-               poses: np.ndarray | None = None) -> list[Verified]:
+    def verify(
+        self,
+        entry: KeyframeEntry,
+        rgb: np.ndarray,
+        proposed: list[tuple[int, str, float]] = (),
+        poses: np.ndarray | None = None,
+    ) -> list[Verified]:
         """Find the keyframe's candidates and verify each geometrically; then store the keyframe.
 
         Needs no graph (it can run beside the tracking): ``poses`` are the keyframe estimates the proximity
@@ -125,9 +139,11 @@ class LoopCloser:
         classical = c.source in ("appearance", "both")
         if classical:
             tried = {i for i, _, _ in candidates}
-            candidates += [(cand.index, "appearance", cand.similarity) for cand in
-                           self.places.query(descriptor, entry.timestamp, c.min_gap_s, c.top_k, c.min_similarity)
-                           if cand.index not in tried]
+            candidates += [
+                (cand.index, "appearance", cand.similarity)
+                for cand in self.places.query(descriptor, entry.timestamp, c.min_gap_s, c.top_k, c.min_similarity)
+                if cand.index not in tried
+            ]
         if classical and c.proximity and poses is not None:
             tried = {i for i, _, _ in candidates}
             candidates += [(i, "proximity", float("nan")) for i in self._nearby(entry, poses) if i not in tried]
@@ -176,10 +192,16 @@ class LoopCloser:
     def _verify(self, match: KeyframeEntry, query: KeyframeEntry, source: str, similarity: float) -> Verified:
         """PnP-RANSAC between the two keyframes and the viewpoint check; no graph involved."""
         record: dict[str, Any] = {
-            "query_t": query.timestamp, "match_t": match.timestamp, "query_frame": query.frame,
-            "match_frame": match.frame, "query_keyframe": query.index, "match_keyframe": match.index,
-            "source": source, "accepted": False,
-            "similarity": None if math.isnan(similarity) or source == "policy" else round(similarity, 4)}
+            "query_t": query.timestamp,
+            "match_t": match.timestamp,
+            "query_frame": query.frame,
+            "match_frame": match.frame,
+            "query_keyframe": query.index,
+            "match_keyframe": match.index,
+            "source": source,
+            "accepted": False,
+            "similarity": None if math.isnan(similarity) or source == "policy" else round(similarity, 4),
+        }
         if source == "policy":
             record["policy_probability"] = round(similarity, 4)
         try:

@@ -64,13 +64,17 @@ class PlaceIndex:
         self._desc[:n], self._times[:n], self._ids[:n] = state["descriptors"], state["timestamps"], state["ids"]
         self.size = n
 
-    def query(self, descriptor: np.ndarray, timestamp: float, min_gap_s: float, top_k: int,
-              min_similarity: float) -> list[Candidate]:
+    def query(
+        self, descriptor: np.ndarray, timestamp: float, min_gap_s: float, top_k: int, min_similarity: float
+    ) -> list[Candidate]:
         """Up to ``top_k`` places older than ``min_gap_s`` with similarity >= ``min_similarity``, best first."""
         old = np.nonzero(self._times[: self.size] <= timestamp - min_gap_s)[0]
         if len(old) == 0:
             return []
         sims = self._desc[old] @ descriptor
         best = old[np.argsort(-sims)[:top_k]]
-        return [Candidate(int(self._ids[i]), float(s)) for i, s in zip(best, np.sort(-sims)[:top_k] * -1)
-                if s >= min_similarity]
+        return [
+            Candidate(int(self._ids[i]), float(s))
+            for i, s in zip(best, np.sort(-sims)[:top_k] * -1)
+            if s >= min_similarity
+        ]

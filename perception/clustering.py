@@ -102,8 +102,12 @@ def hdbscan_labels(D: np.ndarray, config: ClusterConfig) -> np.ndarray:
     """HDBSCAN cluster labels (-1 = noise) on a precomputed distance matrix."""
     if len(D) < max(config.min_cluster_size, 2):
         return np.full(len(D), -1)
-    model = hdbscan.HDBSCAN(metric="precomputed", min_cluster_size=config.min_cluster_size,
-                            min_samples=config.min_samples, cluster_selection_method=config.selection)
+    model = hdbscan.HDBSCAN(
+        metric="precomputed",
+        min_cluster_size=config.min_cluster_size,
+        min_samples=config.min_samples,
+        cluster_selection_method=config.selection,
+    )
     return model.fit(D.astype(np.float64)).labels_
 
 
@@ -127,8 +131,9 @@ def cluster_labels(features: Sequence[FeatureVector], config: ClusterConfig) -> 
     means = np.array([f.mean for f in features]).reshape(-1, 3)
     variances = np.array([f.var for f in features]).reshape(-1, 3)
     if not config.per_class:
-        return hdbscan_labels(bhattacharyya_matrix(means, variances, labels, config.class_penalty,
-                                                   config.var_floor), config)
+        return hdbscan_labels(
+            bhattacharyya_matrix(means, variances, labels, config.class_penalty, config.var_floor), config
+        )
     out, offset = np.full(len(features), -1), 0
     for label in sorted(set(labels)):
         idx = np.flatnonzero(labels == label)
@@ -155,8 +160,13 @@ def merge_overlapping(clusters: list[list[FeatureVector]], config: ClusterConfig
     for i in range(len(clusters)):
         for j in range(i + 1, len(clusters)):
             a, b = pooled[i], pooled[j]
-            if a.label == b.label and bhattacharyya(a.mean, np.maximum(a.var, config.var_floor), b.mean,
-                                                    np.maximum(b.var, config.var_floor)) <= config.merge_distance:
+            if (
+                a.label == b.label
+                and bhattacharyya(
+                    a.mean, np.maximum(a.var, config.var_floor), b.mean, np.maximum(b.var, config.var_floor)
+                )
+                <= config.merge_distance
+            ):
                 parent[root(j)] = root(i)
     groups: dict[int, list[FeatureVector]] = {}
     for i, c in enumerate(clusters):
@@ -186,8 +196,17 @@ def merge_track_runs(features: Sequence[FeatureVector], run: int) -> list[Featur
     sources: list[list[int]] = [[] for _ in range(g)]
     for k, i in zip(group, order):
         sources[k].extend(features[i].sources)
-    return [FeatureVector(mean[k], cov[k], int(s0[k]), features[order[first[k]]].label,
-                          features[order[first[k]]].track_id, tuple(sources[k])) for k in range(g)]
+    return [
+        FeatureVector(
+            mean[k],
+            cov[k],
+            int(s0[k]),
+            features[order[first[k]]].label,
+            features[order[first[k]]].track_id,
+            tuple(sources[k]),
+        )
+        for k in range(g)
+    ]
 
 
 def ellipsoid(members: Sequence[FeatureVector], object_id: int, axis_scale: float) -> ObjectEllipsoid:
@@ -195,8 +214,9 @@ def ellipsoid(members: Sequence[FeatureVector], object_id: int, axis_scale: floa
     pooled = merge_features(members)
     vals, vecs = np.linalg.eigh(pooled.cov)
     axes = (vecs * (np.sqrt(np.clip(vals, 0.0, None)) * axis_scale)).T
-    return ObjectEllipsoid(object_id, pooled.label, pooled.mean, pooled.cov, axes,
-                           len(members), frozenset(f.track_id for f in members))
+    return ObjectEllipsoid(
+        object_id, pooled.label, pooled.mean, pooled.cov, axes, len(members), frozenset(f.track_id for f in members)
+    )
 
 
 def feature_distances(f: FeatureVector, objects: Sequence[ObjectEllipsoid], config: ClusterConfig) -> np.ndarray:
@@ -229,8 +249,13 @@ class Clusterer:
 
     def state(self) -> dict:
         """Plain state: stored feature vectors, objects, eq. 2.15 counters and the next object id."""
-        return {"features": self.features, "objects": self.objects, "reclusterings": self.reclusterings,
-                "counts": (self._fit, self._out, self._new), "next_id": self._next_id}
+        return {
+            "features": self.features,
+            "objects": self.objects,
+            "reclusterings": self.reclusterings,
+            "counts": (self._fit, self._out, self._new),
+            "next_id": self._next_id,
+        }
 
     def restore(self, state: dict) -> None:
         self.features, self.objects, self.reclusterings = state["features"], state["objects"], state["reclusterings"]
@@ -247,8 +272,10 @@ class Clusterer:
         for f, in_m in zip(observations, associated):
             if f is None or not in_m:
                 continue
-            fits = bool(self.objects) and float(feature_distances(f, self.objects, self.config).min()) <= \
-                self.config.fit_distance
+            fits = (
+                bool(self.objects)
+                and float(feature_distances(f, self.objects, self.config).min()) <= self.config.fit_distance
+            )
             self._fit += fits
             self._out += not fits
         if self._due():
@@ -268,8 +295,9 @@ class Clusterer:
         """Cluster all stored feature vectors (bounded by ``max_features``) into objects, keeping ids."""
         self._compact()
         labels = cluster_labels(self.features, self.config) if self.features else np.zeros(0, int)
-        clusters = [[f for f, c in zip(self.features, labels) if c == k]
-                    for k in range(int(labels.max(initial=-1)) + 1)]
+        clusters = [
+            [f for f, c in zip(self.features, labels) if c == k] for k in range(int(labels.max(initial=-1)) + 1)
+        ]
         clusters = merge_overlapping(clusters, self.config) if self.config.merge_distance > 0 else clusters
         self.objects = self._carry_ids(sorted(clusters, key=len, reverse=True))
         self.reclusterings += 1
@@ -291,8 +319,9 @@ class Clusterer:
         out = []
         for members in clusters:
             tracks = {f.track_id for f in members}
-            overlap = [(len(tracks & o.tracks), o.id) for o in self.objects
-                       if o.label == members[0].label and o.id not in used]
+            overlap = [
+                (len(tracks & o.tracks), o.id) for o in self.objects if o.label == members[0].label and o.id not in used
+            ]
             best = max(overlap, default=(0, 0))
             if best[0] > 0:
                 oid = best[1]

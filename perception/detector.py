@@ -19,17 +19,30 @@ import onnxruntime as ort
 
 from perception.centernet_input import ReshapeError, reshaped_centernet
 from perception.coco import COCO_CLASSES
-from perception.detector_decoders import (NANODET_MEAN_BGR, NANODET_STD_BGR, InputTransform, clip_boxes,
-                                          decode_centernet, decode_nanodet, decode_yolo, fitted_height, letterbox,
-                                          select, stretch)
+from perception.detector_decoders import (
+    NANODET_MEAN_BGR,
+    NANODET_STD_BGR,
+    InputTransform,
+    clip_boxes,
+    decode_centernet,
+    decode_nanodet,
+    decode_yolo,
+    fitted_height,
+    letterbox,
+    select,
+    stretch,
+)
 from perception.frame import Detection
 
 log = logging.getLogger(__name__)
 
 DetectorKind = Literal["centernet", "nanodet", "yolo"]
 MODELS_DIR = Path(__file__).resolve().parents[1] / "models"
-MODEL_FILES: dict[str, str] = {"centernet": "centernet_coco.onnx", "nanodet": "nanodet_coco.onnx",
-                               "yolo": "yolo_coco.onnx"}
+MODEL_FILES: dict[str, str] = {
+    "centernet": "centernet_coco.onnx",
+    "nanodet": "nanodet_coco.onnx",
+    "yolo": "yolo_coco.onnx",
+}
 DEFAULT_INPUT_SIZE: dict[str, int] = {"centernet": 512, "nanodet": 416, "yolo": 640}
 BUILD_SCRIPT = "scripts/build_detector.sh"
 
@@ -39,8 +52,18 @@ BUILD_SCRIPT = "scripts/build_detector.sh"
 DEFAULT_SCORE_THRESHOLD: dict[str, float] = {"centernet": 0.3, "nanodet": 0.35, "yolo": 0.25}
 DEFAULT_CLASS_THRESHOLDS: dict[str, dict[str, float]] = {
     "centernet": {"chair": 0.25, "dining table": 0.25, "book": 0.35, "tv": 0.45, "laptop": 0.45, "microwave": 0.45},
-    "nanodet": {"chair": 0.3, "dining table": 0.3, "tv": 0.4, "book": 0.4, "bottle": 0.45, "refrigerator": 0.45,
-                "sink": 0.45, "oven": 0.45, "bed": 0.45, "cell phone": 0.45},
+    "nanodet": {
+        "chair": 0.3,
+        "dining table": 0.3,
+        "tv": 0.4,
+        "book": 0.4,
+        "bottle": 0.45,
+        "refrigerator": 0.45,
+        "sink": 0.45,
+        "oven": 0.45,
+        "bed": 0.45,
+        "cell phone": 0.45,
+    },
     "yolo": {},
 }
 
@@ -88,9 +111,12 @@ def default_model_path(kind: str) -> Path:
         raise ValueError(f"unknown detector kind {kind!r}; expected one of {sorted(MODEL_FILES)}")
     path = MODELS_DIR / MODEL_FILES[kind]
     if not path.is_file():
-        hint = (f"rebuild it with {BUILD_SCRIPT}" if kind != "yolo" else
-                "export one with ultralytics (`yolo export model=yolov8n.pt format=onnx`) and put it "
-                "there or set the detector model path")
+        hint = (
+            f"rebuild it with {BUILD_SCRIPT}"
+            if kind != "yolo"
+            else "export one with ultralytics (`yolo export model=yolov8n.pt format=onnx`) and put it "
+            "there or set the detector model path"
+        )
         raise FileNotFoundError(f"detector model not found: {path}; {hint}")
     return path
 
@@ -114,8 +140,9 @@ class Detector:
     def __init__(self, config: DetectorConfig | None = None) -> None:
         self.config = config or DetectorConfig()
         if self.config.kind not in DEFAULT_INPUT_SIZE:
-            raise ValueError(f"unknown detector kind {self.config.kind!r}; "
-                             f"expected one of {sorted(DEFAULT_INPUT_SIZE)}")
+            raise ValueError(
+                f"unknown detector kind {self.config.kind!r}; expected one of {sorted(DEFAULT_INPUT_SIZE)}"
+            )
         path = Path(self.config.model) if self.config.model else default_model_path(self.config.kind)
         opts = ort.SessionOptions()
         opts.intra_op_num_threads = self.config.threads
@@ -134,8 +161,14 @@ class Detector:
         self.class_names = self._class_names()
         self._thresholds = self._threshold_vector()
         self.last_ms = 0.0
-        log.info("detector %s (%s) input %d, %d classes, %d threads", path.name, self.config.kind,
-                 self.input_size, len(self.class_names), self.config.threads)
+        log.info(
+            "detector %s (%s) input %d, %d classes, %d threads",
+            path.name,
+            self.config.kind,
+            self.input_size,
+            len(self.class_names),
+            self.config.threads,
+        )
 
     def _input_size(self) -> int:
         if self.config.input_size:
@@ -181,13 +214,16 @@ class Detector:
         if fitted not in self._sessions:
             try:
                 model = reshaped_centernet(self._path, fitted)
-                self._sessions[fitted] = ort.InferenceSession(model, self._options,
-                                                              providers=["CPUExecutionProvider"])
-                log.info("detector: CenterNet input %d x %d for %d x %d images", self.input_size, fitted, width,
-                         height)
+                self._sessions[fitted] = ort.InferenceSession(model, self._options, providers=["CPUExecutionProvider"])
+                log.info("detector: CenterNet input %d x %d for %d x %d images", self.input_size, fitted, width, height)
             except (ReshapeError, OSError, RuntimeError) as exc:  # a user's CenterNet of another layout
-                log.warning("detector: cannot run %s at %d x %d (%s); using the square input", self._path.name,
-                            self.input_size, fitted, exc)
+                log.warning(
+                    "detector: cannot run %s at %d x %d (%s); using the square input",
+                    self._path.name,
+                    self.input_size,
+                    fitted,
+                    exc,
+                )
                 self._sessions[fitted] = self._session
         session = self._sessions[fitted]
         return fitted if session is not self._session else self.input_size
@@ -202,8 +238,9 @@ class Detector:
     def infer(self, rgb: np.ndarray) -> tuple[list[np.ndarray], InputTransform]:
         """Raw network outputs for an RGB image, and the image -> network-input mapping."""
         tensor, transform = self._preprocess(np.ascontiguousarray(rgb))
-        session = self._sessions.get(tensor.shape[1], self._session) if self.config.kind == "centernet" \
-            else self._session
+        session = (
+            self._sessions.get(tensor.shape[1], self._session) if self.config.kind == "centernet" else self._session
+        )
         return session.run(self._outputs, {self._input.name: tensor}), transform
 
     def detect(self, rgb: np.ndarray) -> list[Detection]:
@@ -218,8 +255,13 @@ class Detector:
         boxes = clip_boxes(transform.to_image(boxes), rgb.shape[1], rgb.shape[0])
         # 3. Per-class thresholds, allow-list, class-aware NMS, at most max_detections.
         keep = select(boxes, scores, classes, self._thresholds, self.config.nms_iou, self.config.max_detections)
-        dets = [Detection(self.class_names[int(classes[i])], float(scores[i]),
-                          (float(boxes[i, 0]), float(boxes[i, 1]), float(boxes[i, 2]), float(boxes[i, 3])))
-                for i in keep]
+        dets = [
+            Detection(
+                self.class_names[int(classes[i])],
+                float(scores[i]),
+                (float(boxes[i, 0]), float(boxes[i, 1]), float(boxes[i, 2]), float(boxes[i, 3])),
+            )
+            for i in keep
+        ]
         self.last_ms = (time.perf_counter() - start) * 1000.0
         return dets

@@ -32,8 +32,9 @@ class InputTransform:
         return out
 
 
-def letterbox(image: np.ndarray, size: int, pad_value: int = 0, height: int | None = None) -> tuple[np.ndarray,
-                                                                                                   InputTransform]:
+def letterbox(
+    image: np.ndarray, size: int, pad_value: int = 0, height: int | None = None
+) -> tuple[np.ndarray, InputTransform]:
     """Aspect-preserving resize into a ``size`` wide, ``height`` (default ``size``) high canvas, centred, padded
     with ``pad_value``."""
     h, w = image.shape[:2]
@@ -43,7 +44,7 @@ def letterbox(image: np.ndarray, size: int, pad_value: int = 0, height: int | No
     resized = cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_LINEAR)
     pad_x, pad_y = (size - new_w) // 2, (out_h - new_h) // 2
     canvas = np.full((out_h, size, image.shape[2]), pad_value, dtype=image.dtype)
-    canvas[pad_y:pad_y + new_h, pad_x:pad_x + new_w] = resized
+    canvas[pad_y : pad_y + new_h, pad_x : pad_x + new_w] = resized
     return canvas, InputTransform(scale, scale, float(pad_x), float(pad_y))
 
 
@@ -79,8 +80,9 @@ def _softmax(x: np.ndarray, axis: int) -> np.ndarray:
     return e / e.sum(axis=axis, keepdims=True)
 
 
-def decode_nanodet(outputs: list[np.ndarray], input_size: int, strides: tuple[int, ...] = (8, 16, 32),
-                   bins: int = 11) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def decode_nanodet(
+    outputs: list[np.ndarray], input_size: int, strides: tuple[int, ...] = (8, 16, 32), bins: int = 11
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """NanoDet GFL heads -> boxes, best-class scores, classes.
 
     ``outputs`` holds, in any order, per stride one ``cls`` tensor [1, N, C] (already sigmoid) and one
@@ -152,8 +154,9 @@ def nms(boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray, iou: float, 
     return np.array(keep, dtype=np.int64)
 
 
-def select(boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray, thresholds: np.ndarray,
-           iou: float, max_det: int) -> np.ndarray:
+def select(
+    boxes: np.ndarray, scores: np.ndarray, classes: np.ndarray, thresholds: np.ndarray, iou: float, max_det: int
+) -> np.ndarray:
     """Indices that pass the per-class score ``thresholds`` (indexed by class; inf = excluded), then NMS."""
     valid = (classes >= 0) & (classes < len(thresholds))
     passed = np.flatnonzero(valid)

@@ -87,8 +87,9 @@ def ring_windows(shape: tuple[int, ...], box: Box, ring: float) -> tuple[tuple[i
     return None if outer is None or inner is None else (outer, inner)
 
 
-def box_pixels(depth_m: np.ndarray, box: Box, fraction: float = 1.0,
-               most: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def box_pixels(
+    depth_m: np.ndarray, box: Box, fraction: float = 1.0, most: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Rows and columns of the valid depth pixels inside the central ``fraction`` of a box; with ``most``, on a
     regular grid coarse enough to give at most about that many (a large box's statistics need not every pixel)."""
     win = box_window(depth_m.shape, box, fraction)
@@ -124,8 +125,9 @@ def object_pixels(depth_m: np.ndarray, box: Box, config: FeatureConfig) -> tuple
     return rows[keep], cols[keep]
 
 
-def room_behind(depth_m: np.ndarray, box: Box, rows: np.ndarray, cols: np.ndarray, ring: float = 0.15,
-                step: int = 4) -> float:
+def room_behind(
+    depth_m: np.ndarray, box: Box, rows: np.ndarray, cols: np.ndarray, ring: float = 0.15, step: int = 4
+) -> float:
     """Free depth behind an object's visible surface (its pixels ``rows``, ``cols``): the 90th percentile of how
     far the pixels of a ring around its box (``ring`` of the box size wide) lie behind the nearest object pixel,
     counting only those behind it (a floor or table beside the object lies partly behind it too); inf when none
@@ -163,8 +165,9 @@ def cut_by_border(box: Box, width: int, height: int) -> tuple[bool, bool]:
     return (x1 < BORDER_PX or x2 > width - BORDER_PX), (y1 < BORDER_PX or y2 > height - BORDER_PX)
 
 
-def complete_amodal(points: np.ndarray, label: str, track_id: int, shift: float,
-                    room: float = np.inf, cut_sideways: bool = False) -> FeatureVector | None:
+def complete_amodal(
+    points: np.ndarray, label: str, track_id: int, shift: float, room: float = np.inf, cut_sideways: bool = False
+) -> FeatureVector | None:
     """A camera-frame view's feature vector completed behind its visible surface.
 
     A depth camera sees the near side of an object. Assuming it is about as deep as it is wide (horizontally,
@@ -190,7 +193,7 @@ def complete_amodal(points: np.ndarray, label: str, track_id: int, shift: float,
     centre = float(near) + min(shift * sx, depth / 2.0)
     P = np.eye(3) - np.outer(ray, ray)
     mean = P @ f.mean + centre * ray
-    cov = P @ f.cov @ P + depth ** 2 / 12.0 * np.outer(ray, ray)
+    cov = P @ f.cov @ P + depth**2 / 12.0 * np.outer(ray, ray)
     return FeatureVector(mean, cov, f.n, label, track_id, f.sources)
 
 
@@ -214,8 +217,9 @@ def stride_subsample(n: int, k: int) -> np.ndarray:
     return np.linspace(0, n - 1, k).round().astype(np.int64)
 
 
-def ring_pixels(shape: tuple[int, ...], box: Box, ring: float = 0.15,
-                most: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def ring_pixels(
+    shape: tuple[int, ...], box: Box, ring: float = 0.15, most: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Rows and columns of a ring around a box, ``ring`` of the box size wide (clipped to the image); with
     ``most``, on a regular grid coarse enough to give about that many."""
     windows = ring_windows(shape, box, ring)
@@ -229,8 +233,16 @@ def ring_pixels(shape: tuple[int, ...], box: Box, ring: float = 0.15,
     return rows[outside], cols[outside]
 
 
-def support_plane(depth_m: np.ndarray, K: np.ndarray, box: Box, max_tilt_deg: float, inlier_m: float = 0.01,
-                  min_share: float = 0.3, samples: int = 1000, hypotheses: int = 64) -> np.ndarray | None:
+def support_plane(
+    depth_m: np.ndarray,
+    K: np.ndarray,
+    box: Box,
+    max_tilt_deg: float,
+    inlier_m: float = 0.01,
+    min_share: float = 0.3,
+    samples: int = 1000,
+    hypotheses: int = 64,
+) -> np.ndarray | None:
     """The plane ``(n, d)`` (n . p + d = 0, camera frame) an object in ``box`` stands on, or None.
 
     RANSAC (fixed seed: deterministic) over the ring of pixels around the box, among the planes whose normal
@@ -259,8 +271,15 @@ def support_plane(depth_m: np.ndarray, K: np.ndarray, box: Box, max_tilt_deg: fl
     return np.r_[normals[best], offsets[best]] if inliers[best] >= min_share * len(points) else None
 
 
-def without_support(depth_m: np.ndarray, K: np.ndarray, box: Box, rows: np.ndarray, cols: np.ndarray,
-                    config: FeatureConfig, min_left: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+def without_support(
+    depth_m: np.ndarray,
+    K: np.ndarray,
+    box: Box,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    config: FeatureConfig,
+    min_left: float = 0.3,
+) -> tuple[np.ndarray, np.ndarray]:
     """The object pixels minus those on the floor or table it stands on (``FeatureConfig.support_tilt_deg``).
 
     A surface joined to the object's depth segment stretches its extent (a cup's box holds the table around
@@ -276,8 +295,7 @@ def without_support(depth_m: np.ndarray, K: np.ndarray, box: Box, rows: np.ndarr
     return (rows[off], cols[off]) if off.sum() >= min_left * len(rows) else (rows, cols)
 
 
-def object_points(depth_m: np.ndarray, K: np.ndarray, box: Box,
-                  config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
+def object_points(depth_m: np.ndarray, K: np.ndarray, box: Box, config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
     """A detection's object pixels: its depth segment (``object_pixels``) without its support surface."""
     rows, cols = object_pixels(depth_m, box, config)
     return without_support(depth_m, K, box, rows, cols, config)
@@ -292,8 +310,9 @@ def backproject_detection(
     return transform(T_wc, backproject(depth_m, K, rows[idx], cols[idx]))
 
 
-def detection_feature(depth_m: np.ndarray, K: np.ndarray, box: Box, label: str, track_id: int,
-                      config: FeatureConfig) -> FeatureVector | None:
+def detection_feature(
+    depth_m: np.ndarray, K: np.ndarray, box: Box, label: str, track_id: int, config: FeatureConfig
+) -> FeatureVector | None:
     """The camera-frame feature vector of a detection (amodally completed when configured); None when too few
     points."""
     rows, cols = object_points(depth_m, K, box, config)
@@ -301,8 +320,14 @@ def detection_feature(depth_m: np.ndarray, K: np.ndarray, box: Box, label: str, 
     points = backproject(depth_m, K, rows[idx], cols[idx])
     if config.amodal is None or len(points) < 3:
         return feature_from_points(points, label, track_id)
-    return complete_amodal(points, label, track_id, config.amodal, room_behind(depth_m, box, rows, cols),
-                           cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0])
+    return complete_amodal(
+        points,
+        label,
+        track_id,
+        config.amodal,
+        room_behind(depth_m, box, rows, cols),
+        cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0],
+    )
 
 
 def feature_from_points(points: np.ndarray, label: str, track_id: int = -1) -> FeatureVector | None:

@@ -15,7 +15,7 @@ import numpy as np
 from graph.geometry import motion_magnitude, relative
 from perception.frame import CameraModel, Frame
 from perception.icp import icp_refine
-from perception.odometry import Features, FeatureExtractor, OdometryConfig, Rejected, RelativePoseEstimator
+from perception.odometry import FeatureExtractor, Features, OdometryConfig, Rejected, RelativePoseEstimator
 
 log = logging.getLogger(__name__)
 
@@ -136,12 +136,24 @@ class VisualOdometry:
         self._last_pose = pose
         trans, rot = motion_magnitude(rel.T_a_b)
         p = self.policy
-        if (trans >= p.translation_m or rot >= math.radians(p.rotation_deg) or self._since >= p.max_interval
-                or rel.inliers < p.min_inliers):
+        if (
+            trans >= p.translation_m
+            or rot >= math.radians(p.rotation_deg)
+            or self._since >= p.max_interval
+            or rel.inliers < p.min_inliers
+        ):
             T = self._refine(rel.T_a_b, depth, self._kf_depth)
             pose = self._kf_pose @ T
-            step = Step(pose, True, T, rel.sigma_m, rel.sigma_deg, inliers=rel.inliers, features=features,
-                        extra=self._skip_edges(features, depth))
+            step = Step(
+                pose,
+                True,
+                T,
+                rel.sigma_m,
+                rel.sigma_deg,
+                inliers=rel.inliers,
+                features=features,
+                extra=self._skip_edges(features, depth),
+            )
             return self._new_keyframe(pose, features, depth, step)
         return Step(pose, False, inliers=rel.inliers, features=features)
 
@@ -174,14 +186,16 @@ class VisualOdometry:
         log.warning("tracking lost at t=%.3f (%s); re-initialising with a weak factor", frame.timestamp, exc)
         pose = self._last_pose
         scale = self.policy.lost_sigma_scale
-        step = Step(pose, True, relative(self._kf_pose, pose), 0.05 * scale, 2.0 * scale, lost=True,
-                    features=features)
+        step = Step(pose, True, relative(self._kf_pose, pose), 0.05 * scale, 2.0 * scale, lost=True, features=features)
         return self._new_keyframe(pose, features, depth, step)
 
     def _new_keyframe(self, pose: np.ndarray, features: Features, depth: np.ndarray, step: Step) -> Step:
         if self._kf_features is not None and not step.lost:
-            self._history = (self._history + [(self._kf_features, self._kf_depth)])[-(self.policy.skip_edges - 1):] \
-                if self.policy.skip_edges > 1 else []
+            self._history = (
+                (self._history + [(self._kf_features, self._kf_depth)])[-(self.policy.skip_edges - 1) :]
+                if self.policy.skip_edges > 1
+                else []
+            )
         elif step.lost:
             self._history = []
         self._kf_pose, self._kf_features, self._kf_depth = pose, features, depth

@@ -34,8 +34,9 @@ def vertex_map(depth_m: np.ndarray, K: Intrinsics) -> np.ndarray:
     return np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], axis=-1)
 
 
-def smooth_depth(depth_m: np.ndarray, diameter: int = 7, sigma_depth_m: float = 0.04,
-                 sigma_px: float = 3.0) -> np.ndarray:
+def smooth_depth(
+    depth_m: np.ndarray, diameter: int = 7, sigma_depth_m: float = 0.04, sigma_px: float = 3.0
+) -> np.ndarray:
     """Edge-preserving bilateral filter of a depth image (KinectFusion's first step); NaN stays invalid."""
     valid = np.isfinite(depth_m) & (depth_m > 0)
     d = np.where(valid, depth_m, 0.0).astype(np.float32)
@@ -76,9 +77,17 @@ def project(points: np.ndarray, K: Intrinsics, shape: tuple[int, int]) -> tuple[
     return ok, v[ok].astype(int) * w + u[ok].astype(int)
 
 
-def icp_refine(src_depth: np.ndarray, dst_depth: np.ndarray, K: Intrinsics, T_init: np.ndarray,
-               level: int = 2, step: int = 3, iterations: int = 10, max_dist: tuple[float, float] = (0.08, 0.02),
-               min_inliers: int = 300) -> IcpResult | None:
+def icp_refine(
+    src_depth: np.ndarray,
+    dst_depth: np.ndarray,
+    K: Intrinsics,
+    T_init: np.ndarray,
+    level: int = 2,
+    step: int = 3,
+    iterations: int = 10,
+    max_dist: tuple[float, float] = (0.08, 0.02),
+    min_inliers: int = 300,
+) -> IcpResult | None:
     """Refine ``T_dst_src`` (maps src camera points into the dst camera) by point-to-plane ICP.
 
     Both images are used at 1/``level`` resolution, the source further subsampled by ``step``.

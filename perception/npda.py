@@ -151,8 +151,14 @@ def u_statistics(prev: Sequence[np.ndarray], cur: Sequence[np.ndarray]) -> tuple
     P, C = hist[: len(prev)], hist[len(prev) :]
     above = m[:, None] - np.cumsum(P, axis=1)
     u = (above + 0.5 * P) @ C.T
-    ties = ((P**3).sum(1)[:, None] + (C**3).sum(1)[None, :] + 3.0 * (P**2) @ C.T + 3.0 * P @ (C**2).T
-            - m[:, None] - n[None, :])
+    ties = (
+        (P**3).sum(1)[:, None]
+        + (C**3).sum(1)[None, :]
+        + 3.0 * (P**2) @ C.T
+        + 3.0 * P @ (C**2).T
+        - m[:, None]
+        - n[None, :]
+    )
     big_n = m[:, None] + n[None, :]
     with np.errstate(divide="ignore", invalid="ignore"):
         tc = np.where(big_n > 1, ties / (big_n * (big_n**2 - 1.0)), 0.0)
@@ -283,8 +289,13 @@ def out_of_view_scores(
                 pts = moved_box_points(d.box, cur_depth, K, np.eye(4))
                 s = box_samples(cur_depth, d.box, config)
                 enough = len(pts) >= config.min_samples and len(s) >= config.min_samples
-                current.append((_extent(pts) if enough else None, s if enough else s[:0],
-                                _quantised(pts[stride_subsample(len(pts), config.max_samples), 1], config)))
+                current.append(
+                    (
+                        _extent(pts) if enough else None,
+                        s if enough else s[:0],
+                        _quantised(pts[stride_subsample(len(pts), config.max_samples), 1], config),
+                    )
+                )
         z = points[stride_subsample(len(points), config.max_samples)]
         u, mean, var = u_statistics([_quantised(z[:, 2], config)], [c[1] for c in current])
         score = association_score(u, mean, var)[0]

@@ -9,8 +9,14 @@ import numpy as np
 
 from graph.geometry import inverse
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
-from perception.features import (FeatureConfig, FeatureVector, cut_by_border, detection_feature, merge_features,
-                                 transform_feature)
+from perception.features import (
+    FeatureConfig,
+    FeatureVector,
+    cut_by_border,
+    detection_feature,
+    merge_features,
+    transform_feature,
+)
 from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
 from perception.tracks import Tracker
@@ -40,8 +46,13 @@ class ObjectMapper:
     from new keyframe poses and re-clusters (Sec. 2.4.7: after an optimisation moved the poses).
     """
 
-    def __init__(self, npda: NPDAConfig = NPDAConfig(), clustering: ClusterConfig = ClusterConfig(),
-                 features: FeatureConfig = FeatureConfig(), tracker: Tracker | None = None):
+    def __init__(
+        self,
+        npda: NPDAConfig = NPDAConfig(),
+        clustering: ClusterConfig = ClusterConfig(),
+        features: FeatureConfig = FeatureConfig(),
+        tracker: Tracker | None = None,
+    ):
         self.npda, self.features = npda, features
         self.tracker = tracker or Tracker()
         self.clusterer = Clusterer(clustering)
@@ -53,22 +64,35 @@ class ObjectMapper:
         """The latest keyframe's (track id, camera-frame centroid, largest std of its points (m)) per detection
         with enough depth whose box the image border does not cut (a cut box measures part of the object)."""
 
-    def add_keyframe(self, index: int, detections: list[Detection], depth_m: np.ndarray, K: np.ndarray,
-                     pose: np.ndarray) -> bool:
+    def add_keyframe(
+        self, index: int, detections: list[Detection], depth_m: np.ndarray, K: np.ndarray, pose: np.ndarray
+    ) -> bool:
         """Associate, extend tracks, store feature vectors, re-cluster when due; True if it re-clustered."""
         pairs = []
         if self._prev is not None and detections and self._prev.detections:
-            pairs = associate(self._prev.detections, self._prev.depth_m, detections, depth_m, K,
-                              inverse(pose) @ self._prev.pose, self.npda).pairs
+            pairs = associate(
+                self._prev.detections,
+                self._prev.depth_m,
+                detections,
+                depth_m,
+                K,
+                inverse(pose) @ self._prev.pose,
+                self.npda,
+            ).pairs
         self.associations += len(pairs)
         ids = self.tracker.update(index, [d.label for d in detections], pairs)
         h, w = depth_m.shape[:2]
         whole = [not any(cut_by_border(d.box, w, h)) for d in detections]
-        local = [_weighed(detection_feature(depth_m, K, d.box, d.label, t, self.features), inside,
-                          self.features.cut_weight) for d, t, inside in zip(detections, ids, whole)]
+        local = [
+            _weighed(detection_feature(depth_m, K, d.box, d.label, t, self.features), inside, self.features.cut_weight)
+            for d, t, inside in zip(detections, ids, whole)
+        ]
         obs = [None if f is None else transform_feature(self._store(index, f), pose) for f in local]
-        self.last_observations = [(t, f.mean, float(np.sqrt(np.linalg.eigvalsh(f.cov)[-1])))
-                                  for f, t, inside in zip(local, ids, whole) if f is not None and inside]
+        self.last_observations = [
+            (t, f.mean, float(np.sqrt(np.linalg.eigvalsh(f.cov)[-1])))
+            for f, t, inside in zip(local, ids, whole)
+            if f is not None and inside
+        ]
         self.clusterer.add([self.tracker.observe(t, f) for t, f in zip(ids, obs)] + self.tracker.close_stale(index))
         self._prev = _Keyframe(detections, depth_m, pose, index)
         return self.clusterer.step(obs, [self.tracker.associated(t) for t in ids])
@@ -76,8 +100,9 @@ class ObjectMapper:
     def _store(self, keyframe: int, local: FeatureVector) -> FeatureVector:
         """Keep a camera-frame observation; the same vector tagged with its store id."""
         self._obs_keyframe.append(keyframe)
-        self._obs_local.append(FeatureVector(local.mean, local.cov, local.n, local.label, local.track_id,
-                                             (len(self._obs_local),)))
+        self._obs_local.append(
+            FeatureVector(local.mean, local.cov, local.n, local.label, local.track_id, (len(self._obs_local),))
+        )
         return self._obs_local[-1]
 
     def repose(self, poses: Mapping[int, np.ndarray] | np.ndarray) -> list[ObjectEllipsoid]:
@@ -97,8 +122,9 @@ class ObjectMapper:
         def world(f: FeatureVector) -> FeatureVector:
             if not f.sources:  # from a snapshot of a version without the store: left as it was
                 return f
-            parts = [FeatureVector(means[i], covs[i], self._obs_local[i].n, f.label, f.track_id, (i,))
-                     for i in f.sources]
+            parts = [
+                FeatureVector(means[i], covs[i], self._obs_local[i].n, f.label, f.track_id, (i,)) for i in f.sources
+            ]
             return parts[0] if len(parts) == 1 else merge_features(parts)
 
         self.clusterer.features = [world(f) for f in self.clusterer.features]
@@ -110,11 +136,18 @@ class ObjectMapper:
 
     def state(self) -> dict:
         """Plain state: tracker, clusterer, the previous keyframe (detections, depth, pose), counters, store."""
-        prev = None if self._prev is None else (self._prev.detections, self._prev.depth_m, self._prev.pose,
-                                                 self._prev.index)
-        return {"tracker": self.tracker.state(), "clusterer": self.clusterer.state(), "prev": prev,
-                "associations": self.associations,
-                "observations": {"keyframe": np.array(self._obs_keyframe, np.int64), "local": self._obs_local}}
+        prev = (
+            None
+            if self._prev is None
+            else (self._prev.detections, self._prev.depth_m, self._prev.pose, self._prev.index)
+        )
+        return {
+            "tracker": self.tracker.state(),
+            "clusterer": self.clusterer.state(),
+            "prev": prev,
+            "associations": self.associations,
+            "observations": {"keyframe": np.array(self._obs_keyframe, np.int64), "local": self._obs_local},
+        }
 
     def restore(self, state: dict) -> None:
         self.tracker.restore(state["tracker"])
@@ -137,7 +170,12 @@ class ObjectMapper:
 def object_json(o: ObjectEllipsoid, landmark: np.ndarray | None = None) -> dict:
     """The ``objects.json`` entry of SPEC section 4, plus ``landmark``: the object's iSAM2 landmark estimate
     (world position) once it is in the graph, else null."""
-    return {"id": int(o.id), "label": o.label, "mean": [float(v) for v in o.mean],
-            "cov": np.asarray(o.cov, float).tolist(), "axes": np.asarray(o.axes, float).tolist(),
-            "n_observations": int(o.n_observations),
-            "landmark": None if landmark is None else [float(v) for v in landmark]}
+    return {
+        "id": int(o.id),
+        "label": o.label,
+        "mean": [float(v) for v in o.mean],
+        "cov": np.asarray(o.cov, float).tolist(),
+        "axes": np.asarray(o.axes, float).tolist(),
+        "n_observations": int(o.n_observations),
+        "landmark": None if landmark is None else [float(v) for v in landmark],
+    }

@@ -122,9 +122,16 @@ class RelativePoseEstimator:
             raise Rejected("too_few_matches", f"{len(ia)} < {cfg.min_matches}", len(ia))
         obj = a.points[ia].astype(np.float64)
         img = b.pixels[ib].astype(np.float64)
-        ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, self.K, None, iterationsCount=300,
-                                                 reprojectionError=cfg.ransac_px, confidence=0.999,
-                                                 flags=cv2.SOLVEPNP_EPNP)
+        ok, rvec, tvec, inl = cv2.solvePnPRansac(
+            obj,
+            img,
+            self.K,
+            None,
+            iterationsCount=300,
+            reprojectionError=cfg.ransac_px,
+            confidence=0.999,
+            flags=cv2.SOLVEPNP_EPNP,
+        )
         n_inl = 0 if inl is None else len(inl)
         if not ok or n_inl < cfg.min_inliers:
             raise Rejected("too_few_inliers", f"{n_inl} < {cfg.min_inliers}", len(ia), n_inl)

@@ -33,8 +33,9 @@ def project_zbuffer(points: np.ndarray, K: Intrinsics, width: int, height: int) 
     return out.reshape(height, width)
 
 
-def reproject_depth(depth_m: np.ndarray, K_src: Intrinsics, K_dst: Intrinsics, T_dst_src: np.ndarray,
-                    width: int, height: int) -> np.ndarray:
+def reproject_depth(
+    depth_m: np.ndarray, K_src: Intrinsics, K_dst: Intrinsics, T_dst_src: np.ndarray, width: int, height: int
+) -> np.ndarray:
     """Depth seen from another camera: back-project with K_src, move by T_dst_src, z-buffer with K_dst."""
     pts, _, _ = backproject(depth_m, K_src)
     moved = pts @ np.ascontiguousarray(T_dst_src[:3, :3].T) + T_dst_src[:3, 3]
@@ -57,7 +58,7 @@ def depth_in_color(depth_m: np.ndarray, camera: CameraModel, scale: int = 1) -> 
     small_dst = Intrinsics(c.fx / scale, c.fy / scale, c.cx / scale, c.cy / scale)
     w, h = -(-camera.width // scale), -(-camera.height // scale)
     small = reproject_depth(depth_m[::scale, ::scale], small_src, small_dst, T, w, h)
-    return cv2.resize(small, (w * scale, h * scale), interpolation=cv2.INTER_NEAREST)[:camera.height, :camera.width]
+    return cv2.resize(small, (w * scale, h * scale), interpolation=cv2.INTER_NEAREST)[: camera.height, : camera.width]
 
 
 def smooth_depth_mask(depth_m: np.ndarray, max_ratio: float = 0.02, radius: int = 2) -> np.ndarray:
@@ -71,8 +72,9 @@ def smooth_depth_mask(depth_m: np.ndarray, max_ratio: float = 0.02, radius: int 
     return (lo > 0) & (hi - lo < max_ratio * d)
 
 
-def smooth_depth_at(depth_m: np.ndarray, rows: np.ndarray, cols: np.ndarray, max_ratio: float = 0.02,
-                    radius: int = 2) -> np.ndarray:
+def smooth_depth_at(
+    depth_m: np.ndarray, rows: np.ndarray, cols: np.ndarray, max_ratio: float = 0.02, radius: int = 2
+) -> np.ndarray:
     """``smooth_depth_mask`` at the given pixels only: O(pixels * (2r+1)^2) instead of a pass over the image."""
     h, w = depth_m.shape
     offsets = np.arange(-radius, radius + 1)
@@ -84,8 +86,13 @@ def smooth_depth_at(depth_m: np.ndarray, rows: np.ndarray, cols: np.ndarray, max
     return (lo > 0) & (hi - lo < max_ratio * d)
 
 
-def depth_at_color_pixels(pixels: np.ndarray, depth_m: np.ndarray, camera: CameraModel,
-                          iterations: int = 3, max_edge_ratio: float | None = None) -> np.ndarray:
+def depth_at_color_pixels(
+    pixels: np.ndarray,
+    depth_m: np.ndarray,
+    camera: CameraModel,
+    iterations: int = 3,
+    max_edge_ratio: float | None = None,
+) -> np.ndarray:
     """Colour-camera depth (z, metres; NaN where unknown) at colour pixels (N, 2).
 
     For an unregistered sensor each pixel's ray is intersected with the depth image by fixed-point

@@ -77,15 +77,23 @@ def warp_depth(depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, splat:
     np.minimum.at(out, index, z[near])
     out = out.reshape(h + 2, pw)
     if splat == 2:  # pixel (r, c) of the padded image takes the minimum over (r-1..r, c-1..c)
-        out = cv2.erode(out, np.ones((2, 2), np.uint8), anchor=(1, 1), borderType=cv2.BORDER_CONSTANT,
-                        borderValue=np.inf)
-    out = out[1:h + 1, 1:w + 1]
+        out = cv2.erode(
+            out, np.ones((2, 2), np.uint8), anchor=(1, 1), borderType=cv2.BORDER_CONSTANT, borderValue=np.inf
+        )
+    out = out[1 : h + 1, 1 : w + 1]
     out[np.isinf(out)] = np.nan
     return out
 
 
-def moved_box_points(box: Box, depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, gap_m: float = 0.05,
-                     anchor_fraction: float = 0.5, max_points: int = 4000) -> np.ndarray:
+def moved_box_points(
+    box: Box,
+    depth_m: np.ndarray,
+    K: np.ndarray,
+    T_new_old: np.ndarray,
+    gap_m: float = 0.05,
+    anchor_fraction: float = 0.5,
+    max_points: int = 4000,
+) -> np.ndarray:
     """A box's object points in the newer camera's frame (N, 3): its dominant-depth pixels, back-projected.
 
     Only the pixels of the box's dominant depth segment are used (background inside the box moves with a
@@ -126,8 +134,15 @@ def image_box(points: np.ndarray, K: np.ndarray, width: int, height: int) -> Box
     return (float(bx1), float(by1), float(bx2), float(by2))
 
 
-def warp_box(box: Box, depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, gap_m: float = 0.05,
-             anchor_fraction: float = 0.5, max_points: int = 4000) -> Box | None:
+def warp_box(
+    box: Box,
+    depth_m: np.ndarray,
+    K: np.ndarray,
+    T_new_old: np.ndarray,
+    gap_m: float = 0.05,
+    anchor_fraction: float = 0.5,
+    max_points: int = 4000,
+) -> Box | None:
     """A box moved into the newer image: ``image_box`` of its object points (``moved_box_points``)."""
     h, w = depth_m.shape
     return image_box(moved_box_points(box, depth_m, K, T_new_old, gap_m, anchor_fraction, max_points), K, w, h)

@@ -46,8 +46,13 @@ class LoopClosureGrid(gym.Env):
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
 
-    def __init__(self, grid: GridMap | str = "config1", rules: GridRules | None = None,
-                 render_mode: str | None = None, **rule_overrides):
+    def __init__(
+        self,
+        grid: GridMap | str = "config1",
+        rules: GridRules | None = None,
+        render_mode: str | None = None,
+        **rule_overrides,
+    ):
         self.grid = grid if isinstance(grid, GridMap) else GridMap.load(grid)
         self.rules = rules or GridRules(**rule_overrides)
         if render_mode not in (None, "rgb_array"):
@@ -92,8 +97,14 @@ class LoopClosureGrid(gym.Env):
         reward = (CORRECT_LOOP if due else CORRECT_NONE) if action == correct else WRONG
         self.missed = self.missed + 1 if due and action != correct else (0 if due else self.missed)
         self.false_streak = self.false_streak + 1 if (action != 0 and not due) else 0
-        info = {"due": due, "correct_action": correct, "loop": loop if loop >= 0 else -1, "cell": self.cell,
-                "cell_action": self.cell[0] * self.grid.shape[1] + self.cell[1], "visited": self.visited()}
+        info = {
+            "due": due,
+            "correct_action": correct,
+            "loop": loop if loop >= 0 else -1,
+            "cell": self.cell,
+            "cell_action": self.cell[0] * self.grid.shape[1] + self.cell[1],
+            "visited": self.visited(),
+        }
         r = self.rules
         terminated = r.terminate and (self.missed > r.max_missed or self.false_streak >= r.max_false)
         if terminated:

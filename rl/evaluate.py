@@ -38,13 +38,19 @@ class EvalResult:
 
     def to_json(self) -> dict:
         """The figures ``eval-lc --json`` prints for a configuration (SPEC section 2), and the rest."""
-        return {"precision": self.precision, "recall": self.recall, "lc_due": self.lc_due,
-                "lc_taken": self.lc_taken, "runs": self.runs, **{k: v for k, v in asdict(self).items()
-                                                                  if k not in ("lc_due", "lc_taken", "runs")}}
+        return {
+            "precision": self.precision,
+            "recall": self.recall,
+            "lc_due": self.lc_due,
+            "lc_taken": self.lc_taken,
+            "runs": self.runs,
+            **{k: v for k, v in asdict(self).items() if k not in ("lc_due", "lc_taken", "runs")},
+        }
 
 
-def evaluate(grid: GridMap, policy: Policy, runs: int = 20, seed: int = 10_000, max_steps: int = 20_000,
-             exclude_last: int = 4) -> EvalResult:
+def evaluate(
+    grid: GridMap, policy: Policy, runs: int = 20, seed: int = 10_000, max_steps: int = 20_000, exclude_last: int = 4
+) -> EvalResult:
     """Run ``policy`` in ``runs`` non-terminating episodes side by side and count its loop-closure actions."""
     rules = GridRules(exclude_last=exclude_last, terminate=False)
     envs = [LoopClosureGrid(grid, rules) for _ in range(runs)]

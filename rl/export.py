@@ -21,9 +21,16 @@ def export_actor(actor: RecurrentNet, path: str | Path, meta: dict) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     module = OnnxActor(actor).eval()
     example = (torch.zeros(1, 84, 84, 3, dtype=torch.uint8), *actor.initial_state(1))
-    torch.onnx.export(module, example, str(path), input_names=["obs", "h", "c"],
-                      output_names=["probs", "h_out", "c_out"], dynamic_axes=DYNAMIC, opset_version=17,
-                      dynamo=False)
+    torch.onnx.export(
+        module,
+        example,
+        str(path),
+        input_names=["obs", "h", "c"],
+        output_names=["probs", "h_out", "c_out"],
+        dynamic_axes=DYNAMIC,
+        opset_version=17,
+        dynamo=False,
+    )
     path.with_suffix(".json").write_text(json.dumps({**meta, "hidden": actor.hidden}, indent=1) + "\n")
     return path
 
@@ -31,12 +38,21 @@ def export_actor(actor: RecurrentNet, path: str | Path, meta: dict) -> Path:
 def export_trainer(trainer: Trainer, path: str | Path, wall_s: float, pretraining: dict | None = None) -> Path:
     """The trainer's actor, with the map it learned, its configuration and its reward curve (and the memory
     pretraining's settings and history, when there was one)."""
-    return export_actor(trainer.actor, path, {
-        "map": trainer.grid.to_json(), "exclude_last": trainer.cfg.exclude_last, "steps": trainer.global_step,
-        "wall_s": round(wall_s, 1), "train": asdict(trainer.cfg),
-        **({"pretrain": pretraining} if pretraining else {}),
-        "curve": [{k: v for k, v in row.items() if k in ("step", "mean_return", "batch_length")}
-                  for row in trainer.curve]})
+    return export_actor(
+        trainer.actor,
+        path,
+        {
+            "map": trainer.grid.to_json(),
+            "exclude_last": trainer.cfg.exclude_last,
+            "steps": trainer.global_step,
+            "wall_s": round(wall_s, 1),
+            "train": asdict(trainer.cfg),
+            **({"pretrain": pretraining} if pretraining else {}),
+            "curve": [
+                {k: v for k, v in row.items() if k in ("step", "mean_return", "batch_length")} for row in trainer.curve
+            ],
+        },
+    )
 
 
 @torch.no_grad()

@@ -81,9 +81,13 @@ class GridMap:
 
     def to_json(self) -> dict:
         rows = ["".join(WALL if w else "." for w in row) for row in self.walls]
-        return {"name": self.name, "rows": rows,
-                "features": [[list(cell) for cell in block] for block in self.features],
-                "loops": [list(cell) for cell in self.loops], **({"meta": self.meta} if self.meta else {})}
+        return {
+            "name": self.name,
+            "rows": rows,
+            "features": [[list(cell) for cell in block] for block in self.features],
+            "loops": [list(cell) for cell in self.loops],
+            **({"meta": self.meta} if self.meta else {}),
+        }
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)
@@ -129,8 +133,9 @@ def feature_colours(n: int) -> np.ndarray:
     """(n, 3) uint8 distinct, saturated colours (golden-ratio hues), none white, grey or black."""
     hues = (0.13 + np.arange(n) * 0.618033988749895) % 1.0  # pure red is the agent's
     values = 0.65 + 0.35 * ((np.arange(n) // 7) % 2)
-    return np.array([[round(255 * x) for x in colorsys.hsv_to_rgb(h, 0.85, v)] for h, v in zip(hues, values)],
-                    dtype=np.uint8).reshape(n, 3)
+    return np.array(
+        [[round(255 * x) for x in colorsys.hsv_to_rgb(h, 0.85, v)] for h, v in zip(hues, values)], dtype=np.uint8
+    ).reshape(n, 3)
 
 
 SHIPPED = ("config1", "config2", "config3", "config4", "config5", "config6")

@@ -13,21 +13,34 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from graph.trajectory import Trajectory
 from rl.gridmap import GridMap, MapError
 from rl.map_to_grid import build_grid
 from rl.vision import renderer_for
-from graph.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 GRID_FILE, GRID_PNG, CLOUD_FILE = "grid.json", "grid.png", "cloud.npy"
 
 
-def grid_for_map(name: str, trajectory: Trajectory, cloud: np.ndarray, objects: list[dict],
-                 cell_m: float = 0.25, min_gap_s: float = 5.0) -> GridMap:
+def grid_for_map(
+    name: str,
+    trajectory: Trajectory,
+    cloud: np.ndarray,
+    objects: list[dict],
+    cell_m: float = 0.25,
+    min_gap_s: float = 5.0,
+) -> GridMap:
     """SPEC 6.9's translation of a map into a grid world (see rl.map_to_grid)."""
     objs = [(o["label"], np.asarray(o["mean"], float)) for o in objects]
-    return build_grid(name, trajectory.poses, trajectory.timestamps, np.asarray(cloud, float), objs,
-                      cell_m=cell_m, min_gap_s=min_gap_s)
+    return build_grid(
+        name,
+        trajectory.poses,
+        trajectory.timestamps,
+        np.asarray(cloud, float),
+        objs,
+        cell_m=cell_m,
+        min_gap_s=min_gap_s,
+    )
 
 
 def write_grid(out: Path, grid: GridMap) -> None:

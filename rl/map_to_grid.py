@@ -51,13 +51,22 @@ class GroundFrame:
         return 1 if c > 0 else 3
 
     def to_json(self) -> dict:
-        return {"origin": self.origin.tolist(), "row_axis": self.row_axis.tolist(), "col_axis": self.col_axis.tolist(),
-                "up": self.up.tolist(), "cell_m": self.cell_m, "shape": list(self.shape)}
+        return {
+            "origin": self.origin.tolist(),
+            "row_axis": self.row_axis.tolist(),
+            "col_axis": self.col_axis.tolist(),
+            "up": self.up.tolist(),
+            "cell_m": self.cell_m,
+            "shape": list(self.shape),
+        }
 
     @classmethod
     def from_json(cls, doc: dict) -> GroundFrame:
-        return cls(*(np.array(doc[k], float) for k in ("origin", "row_axis", "col_axis", "up")), float(doc["cell_m"]),
-                   tuple(doc["shape"]))
+        return cls(
+            *(np.array(doc[k], float) for k in ("origin", "row_axis", "col_axis", "up")),
+            float(doc["cell_m"]),
+            tuple(doc["shape"]),
+        )
 
 
 def camera_up(poses: np.ndarray) -> np.ndarray:
@@ -69,8 +78,9 @@ def camera_up(poses: np.ndarray) -> np.ndarray:
     return up / norm
 
 
-def ground_frame(poses: np.ndarray, points: np.ndarray, cell_m: float, up: np.ndarray | None = None,
-                 margin_cells: int = 2) -> GroundFrame:
+def ground_frame(
+    poses: np.ndarray, points: np.ndarray, cell_m: float, up: np.ndarray | None = None, margin_cells: int = 2
+) -> GroundFrame:
     """The grid frame spanning the camera positions (SPEC 6.9 ground plane)."""
     up = camera_up(poses) if up is None else np.asarray(up, float) / np.linalg.norm(up)
     seed = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
@@ -100,10 +110,21 @@ def crossing_cells(cells: np.ndarray, timestamps: np.ndarray, min_gap_s: float) 
     return {k: n for k, n in passes.items() if n > 1}
 
 
-def build_grid(name: str, poses: np.ndarray, timestamps: np.ndarray, points: np.ndarray,
-               objects: list[tuple[str, np.ndarray]], cell_m: float = 0.25, up: np.ndarray | None = None,
-               band_m: tuple[float, float] = (0.15, 2.0), min_points: int = 20, free_radius: int = 1,
-               min_gap_s: float = 10.0, max_loops: int = 20, loop_spacing: int = 2) -> GridMap:
+def build_grid(
+    name: str,
+    poses: np.ndarray,
+    timestamps: np.ndarray,
+    points: np.ndarray,
+    objects: list[tuple[str, np.ndarray]],
+    cell_m: float = 0.25,
+    up: np.ndarray | None = None,
+    band_m: tuple[float, float] = (0.15, 2.0),
+    min_points: int = 20,
+    free_radius: int = 1,
+    min_gap_s: float = 10.0,
+    max_loops: int = 20,
+    loop_spacing: int = 2,
+) -> GridMap:
     """The grid world of a map: walls, objects as feature blocks, loop-closure locations (module doc)."""
     frame = ground_frame(poses, points, cell_m, up)
     rows, cols = frame.shape
@@ -134,13 +155,17 @@ def build_grid(name: str, poses: np.ndarray, timestamps: np.ndarray, points: np.
     if not loops:
         raise MapError("the trajectory never crosses itself: no loop-closure locations for a grid world")
     features = _feature_blocks(frame, walls, objects, set(loops))
-    meta = {"frame": frame.to_json(), "objects": [label for label, _ in objects],
-            "description": f"built from a map: {rows}x{cols} cells of {cell_m} m, {len(loops)} crossings"}
+    meta = {
+        "frame": frame.to_json(),
+        "objects": [label for label, _ in objects],
+        "description": f"built from a map: {rows}x{cols} cells of {cell_m} m, {len(loops)} crossings",
+    }
     return GridMap(name, walls, features, tuple(loops), meta)
 
 
-def _feature_blocks(frame: GroundFrame, walls: np.ndarray, objects: list[tuple[str, np.ndarray]],
-                    reserved: set[tuple[int, int]]) -> tuple[tuple[tuple[int, int], ...], ...]:
+def _feature_blocks(
+    frame: GroundFrame, walls: np.ndarray, objects: list[tuple[str, np.ndarray]], reserved: set[tuple[int, int]]
+) -> tuple[tuple[tuple[int, int], ...], ...]:
     """One single-cell block per object, on the free cell nearest to it that no other block took."""
     free = np.argwhere(~walls)
     taken = set(reserved)

@@ -44,9 +44,12 @@ class RecurrentNet(nn.Module):
         kernel, stride = {1: (8, 4), 2: (4, 2), 4: (3, 1)}[pool]
         convs = nn.Sequential(
             nn.AvgPool2d(pool) if pool > 1 else nn.Identity(),
-            _init(nn.Conv2d(3, 16, kernel, stride=stride)), nn.ReLU(),
-            _init(nn.Conv2d(16, 32, 4, stride=2)), nn.ReLU(),
-            _init(nn.Conv2d(32, 32, 3, stride=1)), nn.ReLU(),
+            _init(nn.Conv2d(3, 16, kernel, stride=stride)),
+            nn.ReLU(),
+            _init(nn.Conv2d(16, 32, 4, stride=2)),
+            nn.ReLU(),
+            _init(nn.Conv2d(32, 32, 3, stride=1)),
+            nn.ReLU(),
             nn.Flatten(),
         )
         with torch.no_grad():
@@ -70,8 +73,15 @@ class RecurrentNet(nn.Module):
         out, (h, c) = self.lstm(self.encoder(to_input(obs)).unsqueeze(0), (h.unsqueeze(0), c.unsqueeze(0)))
         return self.head(out[0]), h[0], c[0]
 
-    def sequence(self, frames: torch.Tensor, index: torch.Tensor, starts: torch.Tensor, h: torch.Tensor,
-                 c: torch.Tensor, with_aux: bool = False):
+    def sequence(
+        self,
+        frames: torch.Tensor,
+        index: torch.Tensor,
+        starts: torch.Tensor,
+        h: torch.Tensor,
+        c: torch.Tensor,
+        with_aux: bool = False,
+    ):
         """Outputs over (T, B) steps whose observations are ``frames[index]``, from state (h, c).
 
         Passing each distinct image once (``frames``) and its uses (``index``) gives the same result as

@@ -7,8 +7,9 @@ and returns B actions. Recurrent policies keep one LSTM state per environment sl
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Protocol, Sequence
+from typing import Protocol
 
 import numpy as np
 import onnxruntime as ort
@@ -50,8 +51,9 @@ class OnnxPolicy:
 
     def probabilities(self, obs: np.ndarray) -> np.ndarray:
         """Advance the LSTM state by one step and return (B, n_actions) action probabilities."""
-        probs, self.h, self.c = self.session.run(None, {"obs": np.ascontiguousarray(obs, np.uint8),
-                                                        "h": self.h, "c": self.c})
+        probs, self.h, self.c = self.session.run(
+            None, {"obs": np.ascontiguousarray(obs, np.uint8), "h": self.h, "c": self.c}
+        )
         return probs
 
     def act(self, obs: np.ndarray, envs: Sequence[LoopClosureGrid] = ()) -> np.ndarray:

@@ -48,9 +48,9 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import gymnasium as gym
 import numpy as np
@@ -122,7 +122,7 @@ def batch_length(targets: np.ndarray, n_actions: int, b1: int, b2: int) -> int:
     """
     onehot = np.zeros((b2, n_actions))
     np.add.at(onehot, (np.repeat(np.arange(b2), targets.shape[1]), targets[:b2].ravel()), 1.0)
-    counts = np.cumsum(onehot, axis=0)[b1 - 1:]  # counts[i] covers steps [0, b1 + i)
+    counts = np.cumsum(onehot, axis=0)[b1 - 1 :]  # counts[i] covers steps [0, b1 + i)
     p = counts / counts.sum(axis=1, keepdims=True)
     entropy = -(np.where(p > 0, p * np.log(np.maximum(p, 1e-12)), 0.0)).sum(axis=1)
     return int(b1 + np.argmax(entropy))
@@ -147,19 +147,38 @@ class Buffer:
 
     @classmethod
     def empty(cls, T: int, n: int, hidden: int, n_loops: int) -> Buffer:
-        return cls(np.zeros((T, n, 84, 84, 3), np.uint8), np.zeros((T, n), bool), np.zeros((T, n), np.int64),
-                   np.zeros((T, n), np.float32), np.zeros((T, n), np.float32), np.zeros((T, n), bool),
-                   np.zeros((T, n), np.int64), np.zeros((T, n), bool), np.full((T, n), -1, np.int64),
-                   np.zeros((T, n, n_loops), bool),
-                   np.zeros((T, 4, n, hidden), np.float32))
+        return cls(
+            np.zeros((T, n, 84, 84, 3), np.uint8),
+            np.zeros((T, n), bool),
+            np.zeros((T, n), np.int64),
+            np.zeros((T, n), np.float32),
+            np.zeros((T, n), np.float32),
+            np.zeros((T, n), bool),
+            np.zeros((T, n), np.int64),
+            np.zeros((T, n), bool),
+            np.full((T, n), -1, np.int64),
+            np.zeros((T, n, n_loops), bool),
+            np.zeros((T, 4, n, hidden), np.float32),
+        )
 
     def drop_front(self, n: int) -> None:
         """Keep steps [n, filled) as the start of the next batch."""
         keep = self.filled - n
-        for name in ("obs", "starts", "actions", "logprobs", "rewards", "dones", "targets", "at_loop", "loop",
-                     "visited", "states"):
+        for name in (
+            "obs",
+            "starts",
+            "actions",
+            "logprobs",
+            "rewards",
+            "dones",
+            "targets",
+            "at_loop",
+            "loop",
+            "visited",
+            "states",
+        ):
             arr = getattr(self, name)
-            arr[:keep] = arr[n:self.filled].copy()
+            arr[:keep] = arr[n : self.filled].copy()
         self.filled = keep
 
 
@@ -187,8 +206,11 @@ def aux_classifier_targets(loop: np.ndarray, action: np.ndarray) -> tuple[torch.
     so being on a location carries the weight of the rest; the action weighted in three kinds (due; on a
     location where none is due, i.e. a first visit, which only memory tells apart; elsewhere)."""
     place = loop + 1
-    return (torch.from_numpy(place), torch.from_numpy(balance_weights(place)),
-            torch.from_numpy(balance_weights(action, loop >= 0)))
+    return (
+        torch.from_numpy(place),
+        torch.from_numpy(balance_weights(place)),
+        torch.from_numpy(balance_weights(action, loop >= 0)),
+    )
 
 
 def distinct_frames(obs: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -198,8 +220,9 @@ def distinct_frames(obs: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     """
     T, B = obs.shape[:2]
     flat = np.ascontiguousarray(obs.reshape(T * B, -1))
-    _, first, inverse = np.unique(flat.view(np.dtype((np.void, flat.shape[1]))).ravel(), return_index=True,
-                                  return_inverse=True)
+    _, first, inverse = np.unique(
+        flat.view(np.dtype((np.void, flat.shape[1]))).ravel(), return_index=True, return_inverse=True
+    )
     return torch.from_numpy(flat[first].reshape(-1, *obs.shape[2:])), torch.from_numpy(inverse.reshape(T, B))
 
 
@@ -240,8 +263,9 @@ class Trainer:
         self.envs = make_envs(cfg, self.grid)
         self.n_actions = self.grid.n_loops + 1
         pool = cfg.pool or input_pool(self.grid.shape)
-        self.actor = RecurrentNet(self.n_actions, cfg.hidden, pool=pool,
-                                  aux=self._aux_outputs() if cfg.aux_coef > 0 else 0)
+        self.actor = RecurrentNet(
+            self.n_actions, cfg.hidden, pool=pool, aux=self._aux_outputs() if cfg.aux_coef > 0 else 0
+        )
         self.critic = RecurrentNet(1, cfg.hidden, head_gain=1.0, pool=pool)
         with torch.no_grad():  # prior: "no loop closure" is the common case (probability no_lc_prior at start)
             self.actor.head.bias[0] = np.log(cfg.no_lc_prior) - np.log((1 - cfg.no_lc_prior) / self.grid.n_loops)
@@ -255,7 +279,9 @@ class Trainer:
         self.history: dict = {"pretrain": None, "wall_s": 0.0}
         obs, _ = self.envs.reset(seed=cfg.seed)
         self.next_obs, self.next_start = obs, np.ones(cfg.n_envs, bool)
-        self.state = [t.numpy() for t in (*self.actor.initial_state(cfg.n_envs), *self.critic.initial_state(cfg.n_envs))]
+        self.state = [
+            t.numpy() for t in (*self.actor.initial_state(cfg.n_envs), *self.critic.initial_state(cfg.n_envs))
+        ]
         self._returns = np.zeros(cfg.n_envs)
         self._finished: list[float] = []
 
@@ -311,8 +337,15 @@ class Trainer:
         per_location, extra = AUX_TARGETS[self.cfg.aux_targets]
         return self.grid.n_loops * per_location + extra
 
-    def aux_loss(self, aux_logits: torch.Tensor, bits: torch.Tensor, place: torch.Tensor, action: torch.Tensor,
-                 place_w: torch.Tensor, action_w: torch.Tensor) -> torch.Tensor:
+    def aux_loss(
+        self,
+        aux_logits: torch.Tensor,
+        bits: torch.Tensor,
+        place: torch.Tensor,
+        action: torch.Tensor,
+        place_w: torch.Tensor,
+        action_w: torch.Tensor,
+    ) -> torch.Tensor:
         """The auxiliary loss over (T, B) steps. "visited+place+action": BCE of the visit memory plus two
         classifiers (location stood on or none; the correct action), each step weighted so that the rare
         classes carry the same total weight as the rest: on a location, for the location classifier; a loop
@@ -323,9 +356,10 @@ class Trainer:
             return nn.functional.binary_cross_entropy_with_logits(aux_logits, bits)
         bce = nn.functional.binary_cross_entropy_with_logits(aux_logits[..., :L], bits)
         ce = nn.functional.cross_entropy
-        place_loss = ce(aux_logits[..., L:2 * L + 1].reshape(-1, L + 1), place.reshape(-1), reduction="none")
-        action_loss = ce(aux_logits[..., aux_action_outputs(L)].reshape(-1, L + 1), action.reshape(-1),
-                         reduction="none")
+        place_loss = ce(aux_logits[..., L : 2 * L + 1].reshape(-1, L + 1), place.reshape(-1), reduction="none")
+        action_loss = ce(
+            aux_logits[..., aux_action_outputs(L)].reshape(-1, L + 1), action.reshape(-1), reduction="none"
+        )
         return bce + (place_w.reshape(-1) * place_loss).mean() + (action_w.reshape(-1) * action_loss).mean()
 
     def aux_target_bits(self, T: int) -> np.ndarray:
@@ -345,12 +379,12 @@ class Trainer:
         """One PPO update on the chosen batch length; returns the update's statistics."""
         cfg, b = self.cfg, self.buffer
         T = batch_length(b.targets, self.n_actions, cfg.b1, cfg.b2) if cfg.batch == "entropy" else cfg.n_steps
-        frames, index = distinct_frames(b.obs[:b.filled])
-        starts = torch.from_numpy(b.starts[:b.filled])
+        frames, index = distinct_frames(b.obs[: b.filled])
+        starts = torch.from_numpy(b.starts[: b.filled])
         s0 = torch.from_numpy(b.states[0])
         with torch.no_grad():  # values of every buffered step (and the next observation) with the current critic
             values = self.critic.sequence(frames, index, starts, s0[2], s0[3]).squeeze(-1).numpy()
-            if T == b.filled:
+            if b.filled == T:
                 ch, cc = (torch.from_numpy(s) for s in self.state[2:])
                 keep = torch.from_numpy(~self.next_start).float().unsqueeze(-1)
                 nxt, _, _ = self.critic.step(torch.from_numpy(self.next_obs), ch * keep, cc * keep)
@@ -361,8 +395,12 @@ class Trainer:
         returns = advantages + values[:T]
         stats = self._optimise(T, frames, index[:T], starts[:T], s0, advantages, returns)
         targets, actions = b.targets[:T], b.actions[:T]
-        stats.update(batch_length=T, lc_due=int((targets > 0).sum()), lc_taken=int((actions > 0).sum()),
-                     lc_correct=int(((actions == targets) & (targets > 0)).sum()))
+        stats.update(
+            batch_length=T,
+            lc_due=int((targets > 0).sum()),
+            lc_taken=int((actions > 0).sum()),
+            lc_correct=int(((actions == targets) & (targets > 0)).sum()),
+        )
         b.drop_front(T)
         return stats
 
@@ -408,8 +446,9 @@ class Trainer:
                 f = frames[used]
                 if cfg.aux_coef > 0:
                     logits, aux_logits = self.actor.sequence(f, sub, starts[:, e], s0[0][e], s0[1][e], with_aux=True)
-                    aux_loss = self.aux_loss(aux_logits, visited[:, e], place[:, e], actions_target[:, e],
-                                             place_w[:, e], action_w[:, e])
+                    aux_loss = self.aux_loss(
+                        aux_logits, visited[:, e], place[:, e], actions_target[:, e], place_w[:, e], action_w[:, e]
+                    )
                 else:
                     logits = self.actor.sequence(f, sub, starts[:, e], s0[0][e], s0[1][e])
                     aux_loss = torch.zeros(())
@@ -431,8 +470,13 @@ class Trainer:
                 self.optimizer.step()
                 clipped.append(float(((ratio - 1).abs() > cfg.clip).float().mean()))
                 aux_losses.append(aux_loss.item())
-        return {"policy_loss": policy_loss.item(), "value_loss": value_loss.item(), "entropy": entropy.item(),
-                "clip_fraction": float(np.mean(clipped)), "aux_loss": float(np.mean(aux_losses))}
+        return {
+            "policy_loss": policy_loss.item(),
+            "value_loss": value_loss.item(),
+            "entropy": entropy.item(),
+            "clip_fraction": float(np.mean(clipped)),
+            "aux_loss": float(np.mean(aux_losses)),
+        }
 
     # ------------------------------------------------------------ loop, checkpoints
 
@@ -443,8 +487,11 @@ class Trainer:
             self.collect()
             stats = self.update()
             episodes, self._finished = self._finished, []
-            stats.update(step=self.global_step, episodes=len(episodes),
-                         mean_return=float(np.mean(episodes)) if episodes else None)
+            stats.update(
+                step=self.global_step,
+                episodes=len(episodes),
+                mean_return=float(np.mean(episodes)) if episodes else None,
+            )
             self.curve.append(stats)
             updates += 1
             if progress:
@@ -458,9 +505,19 @@ class Trainer:
     def save(self, path: Path) -> None:
         """Networks, optimiser, step count and reward curve; written to a temporary file, then renamed."""
         tmp = Path(path).with_suffix(".tmp")
-        torch.save({"config": asdict(self.cfg), "grid": self.grid.to_json(), "actor": self.actor.state_dict(),
-                    "critic": self.critic.state_dict(), "optimizer": self.optimizer.state_dict(),
-                    "global_step": self.global_step, "curve": self.curve, "history": self.history}, tmp)
+        torch.save(
+            {
+                "config": asdict(self.cfg),
+                "grid": self.grid.to_json(),
+                "actor": self.actor.state_dict(),
+                "critic": self.critic.state_dict(),
+                "optimizer": self.optimizer.state_dict(),
+                "global_step": self.global_step,
+                "curve": self.curve,
+                "history": self.history,
+            },
+            tmp,
+        )
         tmp.replace(path)
 
     @classmethod
@@ -477,8 +534,10 @@ class Trainer:
         try:
             trainer.actor.load_state_dict(ckpt["actor"])
         except RuntimeError as exc:
-            raise ValueError(f"{path}: the checkpoint's actor does not match its configuration "
-                             f"(aux_coef {cfg.aux_coef}): {str(exc).splitlines()[0]}") from exc
+            raise ValueError(
+                f"{path}: the checkpoint's actor does not match its configuration "
+                f"(aux_coef {cfg.aux_coef}): {str(exc).splitlines()[0]}"
+            ) from exc
         trainer.critic.load_state_dict(ckpt["critic"])
         trainer.optimizer.load_state_dict(ckpt["optimizer"])
         trainer.global_step, trainer.curve = ckpt["global_step"], ckpt["curve"]

@@ -22,8 +22,8 @@ classifier's greedy choice, counted as ``eval-lc`` counts a policy's.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import torch
@@ -64,16 +64,22 @@ class Walks:
 def record_walks(grid: GridMap, n: int, length: int, seed: int, exclude_last: int = 4) -> Walks:
     """``n`` walks of ``length`` steps from random starts (seeds ``seed``, ``seed + 1``, ...)."""
     env = LoopClosureGrid(grid, GridRules(exclude_last=exclude_last, terminate=False, max_steps=0))
-    walks = Walks(np.zeros((length, n, *env.observation_space.shape), np.uint8),
-                  np.zeros((length, n, grid.n_loops), bool), np.full((length, n), -1, np.int64),
-                  np.zeros((length, n), np.int64))
+    walks = Walks(
+        np.zeros((length, n, *env.observation_space.shape), np.uint8),
+        np.zeros((length, n, grid.n_loops), bool),
+        np.full((length, n), -1, np.int64),
+        np.zeros((length, n), np.int64),
+    )
     for j in range(n):
         obs, _ = env.reset(seed=seed + j)
         for t in range(length):
             walks.obs[t, j] = obs
             obs, _, _, _, info = env.step(0)
-            walks.visited[t, j], walks.loop[t, j], walks.action[t, j] = info["visited"], info["loop"], \
-                info["correct_action"]
+            walks.visited[t, j], walks.loop[t, j], walks.action[t, j] = (
+                info["visited"],
+                info["loop"],
+                info["correct_action"],
+            )
     return walks
 
 
@@ -96,11 +102,14 @@ def memory_scores(aux_logits: torch.Tensor, walks: Walks, n_loops: int) -> dict:
     bit = (location_bits(aux_logits, walks.loop, n_loops) > 0).numpy()
     chosen = action_logits(aux_logits, n_loops).argmax(-1).numpy()
     correct = int(((chosen == walks.action) & due).sum())
-    return {"due_recalled": float(bit[on & due].mean()) if (on & due).any() else float("nan"),
-            "first_visits_recognised": float((~bit[on & ~due]).mean()) if (on & ~due).any() else float("nan"),
-            "due_visits": int((on & due).sum()), "other_visits": int((on & ~due).sum()),
-            "action_precision": correct / max(int((chosen > 0).sum()), 1),
-            "action_recall": correct / max(int(due.sum()), 1)}
+    return {
+        "due_recalled": float(bit[on & due].mean()) if (on & due).any() else float("nan"),
+        "first_visits_recognised": float((~bit[on & ~due]).mean()) if (on & ~due).any() else float("nan"),
+        "due_visits": int((on & due).sum()),
+        "other_visits": int((on & ~due).sum()),
+        "action_precision": correct / max(int((chosen > 0).sum()), 1),
+        "action_recall": correct / max(int(due.sum()), 1),
+    }
 
 
 class MemoryPretrainer:
@@ -116,8 +125,8 @@ class MemoryPretrainer:
         actor = trainer.actor
         with torch.no_grad():
             h = actor.hidden
-            actor.lstm.bias_ih_l0[h:2 * h] = cfg.forget_bias  # PyTorch gate order: input, forget, cell, output
-            actor.lstm.bias_hh_l0[h:2 * h] = 0.0
+            actor.lstm.bias_ih_l0[h : 2 * h] = cfg.forget_bias  # PyTorch gate order: input, forget, cell, output
+            actor.lstm.bias_hh_l0[h : 2 * h] = 0.0
         self.params = [*actor.encoder.parameters(), *actor.lstm.parameters(), *actor.aux_head.parameters()]
         self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr)
 
@@ -130,8 +139,14 @@ class MemoryPretrainer:
         h, c = actor.initial_state(N)
         _, aux = actor.sequence(frames, index, starts, h, c, with_aux=True)
         place, place_w, action_w = aux_classifier_targets(walks.loop, walks.action)
-        loss = self.trainer.aux_loss(aux, torch.from_numpy(self.trainer.aux_targets_of(walks.visited, walks.loop)),
-                                     place, torch.from_numpy(walks.action), place_w, action_w)
+        loss = self.trainer.aux_loss(
+            aux,
+            torch.from_numpy(self.trainer.aux_targets_of(walks.visited, walks.loop)),
+            place,
+            torch.from_numpy(walks.action),
+            place_w,
+            action_w,
+        )
         on = torch.from_numpy(walks.loop >= 0)
         if on.any() and self.cfg.location_weight > 0:
             bits = location_bits(aux, walks.loop, self.n_loops)
@@ -160,8 +175,12 @@ class MemoryPretrainer:
                 losses.append(loss.item())
             with torch.no_grad():
                 _, aux = self.loss(test)
-            row = {"epoch": epoch + 1, "loss": float(np.mean(losses)), **memory_scores(aux, test, self.n_loops),
-                   "wall_s": round(time.perf_counter() - start, 1)}
+            row = {
+                "epoch": epoch + 1,
+                "loss": float(np.mean(losses)),
+                **memory_scores(aux, test, self.n_loops),
+                "wall_s": round(time.perf_counter() - start, 1),
+            }
             history.append(row)
             if progress:
                 progress(epoch + 1, row)

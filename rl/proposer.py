@@ -59,8 +59,14 @@ class PolicyProposer:
 
     def state(self) -> dict:
         """Plain state to resume from: steps, the current cell and its action, the visits, the LSTM state."""
-        return {"steps": self.steps, "cell": self._cell, "active": self._active, "visits": self._visits,
-                "h": self.policy.h, "c": self.policy.c}
+        return {
+            "steps": self.steps,
+            "cell": self._cell,
+            "active": self._active,
+            "visits": self._visits,
+            "h": self.policy.h,
+            "c": self.policy.c,
+        }
 
     def restore(self, state: dict) -> None:
         self.steps, self._cell, self._active = state["steps"], state["cell"], state["active"]
@@ -87,8 +93,9 @@ class PolicyProposer:
         if self._active is not None:
             target = self.policy.grid.loops[self._active.location]
             proposal = replace(self._active, candidates=self._candidates(target, heading, pose))
-        self._visits.setdefault(cell, []).append((keyframe, self.steps, heading, pose[:3, 3].copy(),
-                                                  pose[:3, 2].copy()))
+        self._visits.setdefault(cell, []).append(
+            (keyframe, self.steps, heading, pose[:3, 3].copy(), pose[:3, 2].copy())
+        )
         return proposal
 
     def _candidates(self, target: tuple[int, int], heading: int, pose: np.ndarray) -> list[int]:

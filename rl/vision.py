@@ -22,11 +22,12 @@ WALL_COLOUR = (255, 255, 255)
 AGENT = (255, 0, 0)
 LOOP_COLOUR = (140, 140, 140)
 OBS_SIZE = 84
-_RENDERERS: dict[tuple, "Renderer"] = {}
+_RENDERERS: dict[tuple, Renderer] = {}
 
 
-def visible_cells(walls: np.ndarray, cell: tuple[int, int], heading: int, half_angle_deg: float = 30.0,
-                  step: float = 0.25) -> np.ndarray:
+def visible_cells(
+    walls: np.ndarray, cell: tuple[int, int], heading: int, half_angle_deg: float = 30.0, step: float = 0.25
+) -> np.ndarray:
     """(rows, cols) bool mask of the cells inside the cone of vision and not occluded by walls."""
     rows, cols = walls.shape
     rr, cc = np.mgrid[0:rows, 0:cols]
@@ -94,7 +95,7 @@ class Renderer:
             # cells under 3 pixels: the agent is drawn as a 3 x 3 block centred on its cell, to stay visible
             r = int(np.searchsorted(self._rows_px, cell[0]))
             c = int(np.searchsorted(self._cols_px, cell[1]))
-            image[max(r - 1, 0):r + 2, max(c - 1, 0):c + 2] = AGENT
+            image[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2] = AGENT
         return image
 
     def full_view(self, cell: tuple[int, int] | None = None, heading: int = 0, px: int | None = None) -> np.ndarray:
@@ -111,11 +112,18 @@ class Renderer:
         image = np.ascontiguousarray(np.repeat(np.repeat(base.astype(np.uint8), px, 0), px, 1))
         if cell is not None:
             centre = (int((cell[1] + 0.5) * px), int((cell[0] + 0.5) * px))
-            tip = (centre[0] + int(HEADINGS[heading][1] * px * 0.45),
-                   centre[1] + int(HEADINGS[heading][0] * px * 0.45))
+            tip = (centre[0] + int(HEADINGS[heading][1] * px * 0.45), centre[1] + int(HEADINGS[heading][0] * px * 0.45))
             cv2.arrowedLine(image, centre, tip, (255, 255, 0), max(1, px // 8), tipLength=0.5)
         if px >= 12:
             for l, (r, c) in enumerate(self.grid.loops):
-                cv2.putText(image, str(l + 1), (c * px + 2, r * px + px - 3), cv2.FONT_HERSHEY_SIMPLEX,
-                            px / 40, (0, 0, 0), 1, cv2.LINE_AA)
+                cv2.putText(
+                    image,
+                    str(l + 1),
+                    (c * px + 2, r * px + px - 3),
+                    cv2.FONT_HERSHEY_SIMPLEX,
+                    px / 40,
+                    (0, 0, 0),
+                    1,
+                    cv2.LINE_AA,
+                )
         return image

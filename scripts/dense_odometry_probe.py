@@ -18,9 +18,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from evaluation.trajectory_metrics import trajectory_error  # noqa: E402
-from perception.registration import depth_in_color  # noqa: E402
-from sources import open_dataset  # noqa: E402
+from evaluation.trajectory_metrics import trajectory_error
+from perception.registration import depth_in_color
+from sources import open_dataset
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "7scenes_redkitchen_1000"
 TYPES = {"rgbd": cv2.OdometryType_RGB_DEPTH, "rgb": cv2.OdometryType_RGB, "depth": cv2.OdometryType_DEPTH}
@@ -53,8 +53,10 @@ def main(n: int, mode: str, step: int) -> None:
         poses.append(pose.copy())
         previous = current
     error = trajectory_error(np.array(poses), truth[indices])
-    print(f"{mode} frames {n} step {step}: ATE {error.ate_rmse_m * 100:.2f} cm, failed {failed}, "
-          f"{(time.perf_counter() - started) / len(indices):.3f} s per frame")
+    print(
+        f"{mode} frames {n} step {step}: ATE {error.ate_rmse_m * 100:.2f} cm, failed {failed}, "
+        f"{(time.perf_counter() - started) / len(indices):.3f} s per frame"
+    )
 
 
 if __name__ == "__main__":

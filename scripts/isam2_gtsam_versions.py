@@ -44,8 +44,8 @@ def chain(n: int) -> tuple[float, float]:
 def service_graph(n: int) -> tuple[float, float, float]:
     """t(1000), t(n) (ms per keyframe) and their ratio for `objslam bench isam2`'s simulation with the whole
     graph in one iSAM2 (the service's graph before the bounded window)."""
-    from graph.pose_graph import NoiseSettings
     from bench.isam2 import growth, simulate, window_mean
+    from graph.pose_graph import NoiseSettings
 
     r = simulate(n, 300, NoiseSettings(relinearize_threshold=0.1), window=None, seed=0, returns=True)
     ks = r["keyframe_s"]

@@ -19,11 +19,11 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from rl.evaluate import evaluate  # noqa: E402
-from rl.export import export_actor  # noqa: E402
-from rl.policy import OnnxPolicy  # noqa: E402
-from rl.ppo import TrainConfig, Trainer  # noqa: E402
-from rl.pretrain import MemoryPretrainer, PretrainConfig  # noqa: E402
+from rl.evaluate import evaluate
+from rl.export import export_actor
+from rl.policy import OnnxPolicy
+from rl.ppo import TrainConfig, Trainer
+from rl.pretrain import MemoryPretrainer, PretrainConfig
 
 
 def main() -> None:
@@ -32,17 +32,37 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=40)
     ap.add_argument("--out", type=Path, default=Path("/tmp"))
     args = ap.parse_args()
-    cfg = TrainConfig(map=args.map, seed=0, threads=1, max_episode_steps=512, aux_targets="visited+place+action",
-                      balance_first_visits=True)
+    cfg = TrainConfig(
+        map=args.map,
+        seed=0,
+        threads=1,
+        max_episode_steps=512,
+        aux_targets="visited+place+action",
+        balance_first_visits=True,
+    )
     trainer = Trainer(cfg)
-    history = MemoryPretrainer(trainer, PretrainConfig(epochs=args.epochs, walks=512, length=128, seed=0,
-                                                       policy_from_aux=True)).run()
-    path = export_actor(trainer.actor, args.out / f"{args.map}_pretrained_only.onnx",
-                        {"map": trainer.grid.to_json(), "exclude_last": cfg.exclude_last, "steps": 0})
+    history = MemoryPretrainer(
+        trainer, PretrainConfig(epochs=args.epochs, walks=512, length=128, seed=0, policy_from_aux=True)
+    ).run()
+    path = export_actor(
+        trainer.actor,
+        args.out / f"{args.map}_pretrained_only.onnx",
+        {"map": trainer.grid.to_json(), "exclude_last": cfg.exclude_last, "steps": 0},
+    )
     policy = OnnxPolicy(path)
     result = evaluate(policy.grid, policy, runs=20, seed=10_000, max_steps=20_000, exclude_last=cfg.exclude_last)
-    print(json.dumps({"config": args.map, "precision": result.precision, "recall": result.recall,
-                      "lc_taken": result.lc_taken, "lc_due": result.lc_due, "pretrain_last_epoch": history[-1]}))
+    print(
+        json.dumps(
+            {
+                "config": args.map,
+                "precision": result.precision,
+                "recall": result.recall,
+                "lc_taken": result.lc_taken,
+                "lc_due": result.lc_due,
+                "pretrain_last_epoch": history[-1],
+            }
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -16,8 +16,8 @@ from service.config import load_settings
 from service.node import ServiceNode
 from service.protocol import encode_frame
 from service.replay import frame_publisher
-from sources import open_dataset
 from service.zenoh_session import open_session
+from sources import open_dataset
 
 SPEC = "synthetic:room?seed=0&frames=160&fps=10&width=320&height=240"
 FRAMES = 150
@@ -27,8 +27,12 @@ OUT = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "state_v0.1.0
 def main() -> None:
     shutil.rmtree(OUT, ignore_errors=True)
     OUT.mkdir(parents=True)
-    overrides = {"state_dir": OUT, "ingest": {"queue_size": 1000}, "detector": {"enabled": False},
-                 "persistence": {"keep": 2, "every_keyframes": 1000}}
+    overrides = {
+        "state_dir": OUT,
+        "ingest": {"queue_size": 1000},
+        "detector": {"enabled": False},
+        "persistence": {"keep": 2, "every_keyframes": 1000},
+    }
     settings = load_settings(None, overrides)
     ds = open_dataset(SPEC)
     session = open_session(settings.zenoh, "server", embedded=True)
@@ -44,12 +48,17 @@ def main() -> None:
         trajectory, _ = node.trajectories()
         status = node.status()
         expected = {
-            "spec": SPEC, "frames": FRAMES, "overrides": {k: v for k, v in overrides.items() if k != "state_dir"},
-            "frames_processed": status["frames_processed"], "keyframes": status["keyframes"],
+            "spec": SPEC,
+            "frames": FRAMES,
+            "overrides": {k: v for k, v in overrides.items() if k != "state_dir"},
+            "frames_processed": status["frames_processed"],
+            "keyframes": status["keyframes"],
             "timestamps": [repr(float(t)) for t in trajectory.timestamps],
             "poses": [[repr(float(v)) for v in T.ravel()] for T in trajectory.poses],
-            "loops": [{k: r[k] for k in ("query_frame", "match_frame", "accepted", "reason")}
-                      for r in node.loops_reply()["loops"]],
+            "loops": [
+                {k: r[k] for k in ("query_frame", "match_frame", "accepted", "reason")}
+                for r in node.loops_reply()["loops"]
+            ],
             "objects": sorted(o["id"] for o in node.objects_reply()["objects"]),
         }
     finally:
@@ -58,8 +67,10 @@ def main() -> None:
         if extra.name != "snapshots":
             shutil.rmtree(extra) if extra.is_dir() else extra.unlink()
     (OUT / "expected.json").write_text(json.dumps(expected, indent=1) + "\n")
-    print(f"{OUT}: {expected['frames_processed']} frames, {expected['keyframes']} keyframes, "
-          f"{len(expected['loops'])} loop records, {len(expected['objects'])} objects")
+    print(
+        f"{OUT}: {expected['frames_processed']} frames, {expected['keyframes']} keyframes, "
+        f"{len(expected['loops'])} loop records, {len(expected['objects'])} objects"
+    )
 
 
 if __name__ == "__main__":

@@ -27,11 +27,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from graph.geometry import motion_magnitude, relative  # noqa: E402
-from evaluation.trajectory_metrics import trajectory_error  # noqa: E402
-from service.outputs import tum_text  # noqa: E402
-from sources import Trajectory, open_dataset  # noqa: E402
-from sources.tum import read_trajectory  # noqa: E402
+from evaluation.trajectory_metrics import trajectory_error
+from graph.geometry import motion_magnitude, relative
+from service.outputs import tum_text
+from sources import Trajectory, open_dataset
+from sources.tum import read_trajectory
 
 DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "7scenes_redkitchen_1000"
 
@@ -39,8 +39,20 @@ DATA = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "7sce
 class SurfaceModelTracker:
     """A TSDF volume and an ICP odometry on the depth camera (``stride`` subsamples the depth image)."""
 
-    def __init__(self, fx: float, fy: float, cx: float, cy: float, width: int, height: int, voxel_m: float,
-                 stride: int, depth_scale: float, max_depth_m: float = 4.0, model_frames: int = 0):
+    def __init__(
+        self,
+        fx: float,
+        fy: float,
+        cx: float,
+        cy: float,
+        width: int,
+        height: int,
+        voxel_m: float,
+        stride: int,
+        depth_scale: float,
+        max_depth_m: float = 4.0,
+        model_frames: int = 0,
+    ):
         self.stride, self.model_frames, self.frames = stride, model_frames, 0
         K = np.array([[fx / stride, 0, cx / stride], [0, fy / stride, cy / stride], [0, 0, 1]], np.float32)
         settings = cv2.VolumeSettings(cv2.VolumeType_HashTSDF)
@@ -69,7 +81,7 @@ class SurfaceModelTracker:
 
     def depth(self, raw: np.ndarray) -> np.ndarray:
         """Raw depth units as float32, invalid (0 or 65535) as 0, subsampled by ``stride``."""
-        sub = raw[::self.stride, ::self.stride]
+        sub = raw[:: self.stride, :: self.stride]
         return np.ascontiguousarray(np.where((sub == 0) | (sub == 65535), 0, sub).astype(np.float32))
 
     def correction(self, depth: np.ndarray, predicted: np.ndarray) -> np.ndarray | None:
@@ -91,8 +103,11 @@ class SurfaceModelTracker:
     def integrate(self, depth: np.ndarray, pose: np.ndarray) -> None:
         t0 = time.perf_counter()
         for i, volume in enumerate(self.volumes):
-            if self.model_frames and self.frames >= i * self.model_frames and \
-                    (self.frames - i * self.model_frames) % (2 * self.model_frames) == 0:
+            if (
+                self.model_frames
+                and self.frames >= i * self.model_frames
+                and (self.frames - i * self.model_frames) % (2 * self.model_frames) == 0
+            ):
                 volume.reset()
             volume.integrate(depth, pose.astype(np.float32))
         self.frames += 1
@@ -110,14 +125,20 @@ def compare(probe: np.ndarray, odometry: np.ndarray, truth: np.ndarray, window: 
     odometries are over 4 cm from the ground truth."""
     pairs = {"probe-truth": (probe, truth), "run-truth": (odometry, truth), "probe-run": (probe, odometry)}
     starts = range(0, len(probe) - window, window)
-    table = {name: np.array([window_disagreement(a, b, s, s + window) for s in starts]) for name, (a, b) in
-             pairs.items()}
-    print(", ".join(f"{name} median {np.median(v[:, 0]):.0f} mm / {np.median(v[:, 1]):.2f} deg"
-                    for name, v in table.items()))
+    table = {
+        name: np.array([window_disagreement(a, b, s, s + window) for s in starts]) for name, (a, b) in pairs.items()
+    }
+    print(
+        ", ".join(
+            f"{name} median {np.median(v[:, 0]):.0f} mm / {np.median(v[:, 1]):.2f} deg" for name, v in table.items()
+        )
+    )
     for i, s in enumerate(starts):
         if table["probe-truth"][i, 0] > 40 and table["run-truth"][i, 0] > 40:
-            print(f"  frames {s}-{s + window}: " + ", ".join(f"{name} {v[i, 0]:.0f} mm / {v[i, 1]:.1f} deg"
-                                                              for name, v in table.items()))
+            print(
+                f"  frames {s}-{s + window}: "
+                + ", ".join(f"{name} {v[i, 0]:.0f} mm / {v[i, 1]:.1f} deg" for name, v in table.items())
+            )
 
 
 def main() -> None:
@@ -138,8 +159,18 @@ def main() -> None:
     dataset = open_dataset(str(args.data), {"depth_scale": args.depth_scale} if args.depth_scale else None)
     camera = dataset.frame(0).camera
     k = camera.depth
-    tracker = SurfaceModelTracker(k.fx, k.fy, k.cx, k.cy, camera.width, camera.height, args.voxel, args.stride,
-                                  camera.depth_scale, model_frames=args.model_frames)
+    tracker = SurfaceModelTracker(
+        k.fx,
+        k.fy,
+        k.cx,
+        k.cy,
+        camera.width,
+        camera.height,
+        args.voxel,
+        args.stride,
+        camera.depth_scale,
+        model_frames=args.model_frames,
+    )
     prediction = read_trajectory(args.predict / "odometry.tum").poses if args.predict else None
     n = min(args.frames, len(dataset))
     pose, poses, refused, failed = np.eye(4), [np.eye(4)], 0, 0
@@ -165,11 +196,13 @@ def main() -> None:
     estimate = np.array(poses)
     error = trajectory_error(estimate, truth)
     ms = 1000 * tracker.seconds / max(n - 1, 1)
-    print(f"frames {n} voxel {args.voxel} m stride {args.stride} predict {'run' if prediction is not None else 'none'}"
-          f" gate {args.gate_m} m / {args.gate_deg} deg model {args.model_frames or 'all'} frames: "
-          f"ATE {100 * error.ate_rmse_m:.2f} cm, "
-          f"ICP refused {refused}, failed {failed}; {1000 * seconds / n:.0f} ms/frame "
-          f"(raycast {ms[0]:.0f}, ICP {ms[1]:.0f}, integrate {ms[2]:.0f})")
+    print(
+        f"frames {n} voxel {args.voxel} m stride {args.stride} predict {'run' if prediction is not None else 'none'}"
+        f" gate {args.gate_m} m / {args.gate_deg} deg model {args.model_frames or 'all'} frames: "
+        f"ATE {100 * error.ate_rmse_m:.2f} cm, "
+        f"ICP refused {refused}, failed {failed}; {1000 * seconds / n:.0f} ms/frame "
+        f"(raycast {ms[0]:.0f}, ICP {ms[1]:.0f}, integrate {ms[2]:.0f})"
+    )
     if args.compare:
         compare(estimate, read_trajectory(args.compare / "odometry.tum").poses[:n], truth)
     if args.out:

@@ -20,10 +20,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from perception.features import transform  # noqa: E402
-from perception.warp import project  # noqa: E402
-from sources import open_dataset  # noqa: E402
-from sources.tum import read_trajectory  # noqa: E402
+from perception.features import transform
+from perception.warp import project
+from sources import open_dataset
+from sources.tum import read_trajectory
 
 
 def draw_objects(rgb: np.ndarray, world_to_camera: np.ndarray, K: np.ndarray, objects: list[dict]) -> np.ndarray:
@@ -34,8 +34,15 @@ def draw_objects(rgb: np.ndarray, world_to_camera: np.ndarray, K: np.ndarray, ob
     for obj, (u, v), z in zip(objects, *project(centres, K)):
         if z >= 0.2 and 0 <= u < w and 0 <= v < h:
             cv2.circle(img, (int(u), int(v)), 8, (0, 0, 255), 3)
-            cv2.putText(img, f"{obj['id']}:{obj['label']}", (int(u) + 10, int(v)), cv2.FONT_HERSHEY_SIMPLEX, 0.8,
-                        (0, 255, 255), 2)
+            cv2.putText(
+                img,
+                f"{obj['id']}:{obj['label']}",
+                (int(u) + 10, int(v)),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.8,
+                (0, 255, 255),
+                2,
+            )
     return img
 
 
@@ -64,7 +71,7 @@ def main() -> None:
         tiles.append(cv2.resize(img, None, fx=args.scale, fy=args.scale))
     blank = np.zeros_like(tiles[0])
     tiles += [blank] * (-len(tiles) % args.columns)
-    rows = [np.hstack(tiles[i:i + args.columns]) for i in range(0, len(tiles), args.columns)]
+    rows = [np.hstack(tiles[i : i + args.columns]) for i in range(0, len(tiles), args.columns)]
     cv2.imwrite(str(args.out), np.vstack(rows), [cv2.IMWRITE_JPEG_QUALITY, 80])
     print(f"{len(frames)} frames, {len(objects)} objects -> {args.out}")
 

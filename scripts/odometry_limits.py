@@ -25,8 +25,8 @@ import gtsam
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from graph.geometry import motion_magnitude, pose_from_tum, relative
 from evaluation.trajectory_metrics import trajectory_error
+from graph.geometry import motion_magnitude, pose_from_tum, relative
 from perception.icp import icp_refine
 from sources import open_dataset
 from sources.tum import read_trajectory
@@ -37,8 +37,10 @@ def offline_graph(odometry: np.ndarray, loops: list[tuple[int, int, np.ndarray]]
     graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
     graph.add(gtsam.PriorFactorPose3(0, gtsam.Pose3(odometry[0]), gtsam.noiseModel.Isotropic.Sigma(6, 1e-6)))
     chain = gtsam.noiseModel.Diagonal.Sigmas(np.r_[[math.radians(0.1)] * 3, [0.003] * 3])
-    loop = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345),
-                                          gtsam.noiseModel.Diagonal.Sigmas(np.r_[[math.radians(0.5)] * 3, [0.01] * 3]))
+    loop = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(1.345),
+        gtsam.noiseModel.Diagonal.Sigmas(np.r_[[math.radians(0.5)] * 3, [0.01] * 3]),
+    )
     for i, pose in enumerate(odometry):
         values.insert(i, gtsam.Pose3(pose))
         if i:
@@ -54,11 +56,15 @@ def loop_accuracy(run: Path, truth: np.ndarray) -> None:
     n = len(odometry)
     accepted = [r for r in json.loads((run / "loops.json").read_text()) if r.get("accepted")]
     pairs = [(r["match_frame"], r["query_frame"], pose_from_tum(np.array(r["relative_pose"]))) for r in accepted]
-    print(f"run: ATE odometry {100 * trajectory_error(odometry, truth[:n]).ate_rmse_m:.2f} cm, "
-          f"with its graph {100 * trajectory_error(trajectory, truth[:n]).ate_rmse_m:.2f} cm, "
-          f"{len(pairs)} accepted loops")
-    for name, loops in (("measured", pairs), ("ground truth", [(a, b, relative(truth[a], truth[b]))
-                                                               for a, b, _ in pairs])):
+    print(
+        f"run: ATE odometry {100 * trajectory_error(odometry, truth[:n]).ate_rmse_m:.2f} cm, "
+        f"with its graph {100 * trajectory_error(trajectory, truth[:n]).ate_rmse_m:.2f} cm, "
+        f"{len(pairs)} accepted loops"
+    )
+    for name, loops in (
+        ("measured", pairs),
+        ("ground truth", [(a, b, relative(truth[a], truth[b])) for a, b, _ in pairs]),
+    ):
         ate = trajectory_error(offline_graph(odometry, loops), truth[:n]).ate_rmse_m
         print(f"offline graph, {name} loop poses: ATE {100 * ate:.2f} cm")
 
@@ -73,8 +79,10 @@ def depth_vs_truth(data, truth: np.ndarray, gaps: tuple[int, ...] = (5, 15)) -> 
             if result is not None:
                 found[(i, j)] = result.T
         errors = np.array([motion_magnitude(relative(relative(truth[i], truth[j]), T)) for (i, j), T in found.items()])
-        print(f"ICP from the ground truth, gap {gap}: moves {1000 * np.median(errors[:, 0]):.1f} mm / "
-              f"{math.degrees(np.median(errors[:, 1])):.2f} deg (median of {len(found)} pairs)")
+        print(
+            f"ICP from the ground truth, gap {gap}: moves {1000 * np.median(errors[:, 0]):.1f} mm / "
+            f"{math.degrees(np.median(errors[:, 1])):.2f} deg (median of {len(found)} pairs)"
+        )
         if gap == gaps[-1]:
             time_offsets(truth, found)
 
@@ -90,8 +98,9 @@ def time_offsets(truth: np.ndarray, found: dict, shifts=(-1.0, -0.5, 0.0, 0.5, 1
         return T
 
     for shift in shifts:
-        errors = [motion_magnitude(relative(relative(at(i + shift), at(j + shift)), T))[0]
-                  for (i, j), T in found.items()]
+        errors = [
+            motion_magnitude(relative(relative(at(i + shift), at(j + shift)), T))[0] for (i, j), T in found.items()
+        ]
         print(f"  against the ground truth shifted {shift:+.1f} frames: median {1000 * np.median(errors):.1f} mm")
 
 

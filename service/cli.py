@@ -16,8 +16,11 @@ from rl import commands as lc_cli
 from service.config import ConfigError, Settings, dump_defaults, load_settings
 from sources import DatasetError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="objslam: semantic SLAM backend over zenoh (object association, iSAM2, RL loop closure).")
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="objslam: semantic SLAM backend over zenoh (object association, iSAM2, RL loop closure).",
+)
 console = Console()
 
 ConfigOpt = Annotated[Path | None, typer.Option("--config", help="YAML configuration file")]
@@ -45,8 +48,14 @@ class UserError(Exception):
     """An error to print as one line before exiting non-zero."""
 
 
-def _settings(config: Path | None, robot: str | None = None, connect: list[str] | None = None,
-              listen: list[str] | None = None, mode: str | None = None, state_dir: Path | None = None) -> Settings:
+def _settings(
+    config: Path | None,
+    robot: str | None = None,
+    connect: list[str] | None = None,
+    listen: list[str] | None = None,
+    mode: str | None = None,
+    state_dir: Path | None = None,
+) -> Settings:
     overrides: dict[str, Any] = {}
     zenoh_over: dict[str, Any] = {}
     if robot:
@@ -82,12 +91,18 @@ def _with_lc(settings: Settings, lc_source: LcSource | None, lc_policy: Path | N
 
 
 @app.command()
-def serve(config: ConfigOpt = None, robot: RobotOpt = None, connect: ConnectOpt = None, listen: ListenOpt = None,
-          mode: ModeOpt = None,
-          state_dir: Annotated[Path | None, typer.Option(
-              "--state-dir", help="snapshots (resumed from on start) and, on shutdown, the outputs")] = None,
-          lc_source: Annotated[LcSource | None, typer.Option("--lc-source")] = None,
-          lc_policy: Annotated[Path | None, typer.Option("--lc-policy")] = None) -> None:
+def serve(
+    config: ConfigOpt = None,
+    robot: RobotOpt = None,
+    connect: ConnectOpt = None,
+    listen: ListenOpt = None,
+    mode: ModeOpt = None,
+    state_dir: Annotated[
+        Path | None, typer.Option("--state-dir", help="snapshots (resumed from on start) and, on shutdown, the outputs")
+    ] = None,
+    lc_source: Annotated[LcSource | None, typer.Option("--lc-source")] = None,
+    lc_policy: Annotated[Path | None, typer.Option("--lc-policy")] = None,
+) -> None:
     """Run the long-lived mapping service (until SIGINT / SIGTERM)."""
     from service.run import serve as serve_forever
 
@@ -95,28 +110,34 @@ def serve(config: ConfigOpt = None, robot: RobotOpt = None, connect: ConnectOpt 
 
 
 @app.command()
-def replay(dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?seed=N&frames=N")],
-           rate: Annotated[float | None, typer.Option("--rate", help="frames per second (default: timestamps)")] = None,
-           max_rate: Annotated[bool, typer.Option("--max-rate", help="publish as fast as possible")] = False,
-           max_frames: Annotated[int | None, typer.Option("--max-frames")] = None,
-           robot: RobotOpt = None, connect: ConnectOpt = None, mode: ModeOpt = None, config: ConfigOpt = None,
-           depth_scale: Annotated[float | None, typer.Option("--depth-scale")] = None,
-           fx: Annotated[float | None, typer.Option("--fx")] = None,
-           fy: Annotated[float | None, typer.Option("--fy")] = None,
-           cx: Annotated[float | None, typer.Option("--cx")] = None,
-           cy: Annotated[float | None, typer.Option("--cy")] = None) -> None:
+def replay(
+    dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?seed=N&frames=N")],
+    rate: Annotated[float | None, typer.Option("--rate", help="frames per second (default: timestamps)")] = None,
+    max_rate: Annotated[bool, typer.Option("--max-rate", help="publish as fast as possible")] = False,
+    max_frames: Annotated[int | None, typer.Option("--max-frames")] = None,
+    robot: RobotOpt = None,
+    connect: ConnectOpt = None,
+    mode: ModeOpt = None,
+    config: ConfigOpt = None,
+    depth_scale: Annotated[float | None, typer.Option("--depth-scale")] = None,
+    fx: Annotated[float | None, typer.Option("--fx")] = None,
+    fy: Annotated[float | None, typer.Option("--fy")] = None,
+    cx: Annotated[float | None, typer.Option("--cx")] = None,
+    cy: Annotated[float | None, typer.Option("--cy")] = None,
+) -> None:
     """Publish a dataset's frames to a running service (protocol v1)."""
     from service.replay import Replayer, frame_publisher
-    from sources import open_dataset
     from service.zenoh_session import open_session
+    from sources import open_dataset
 
     if rate is not None and max_rate:
         raise UserError("--rate and --max-rate are exclusive")
     if rate is not None and rate <= 0:
         raise UserError(f"--rate must be positive (got {rate:g})")
     settings = _settings(config, robot, connect, None, mode)
-    data = open_dataset(dataset, _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy),
-                        settings.camera.model_dump())
+    data = open_dataset(
+        dataset, _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy), settings.camera.model_dump()
+    )
     session = open_session(settings.zenoh, "client")
     try:
         pub = frame_publisher(session, f"{settings.key_prefix}/rgbd")
@@ -128,9 +149,14 @@ def replay(dataset: Annotated[str, typer.Argument(help="directory or synthetic:N
 
 
 @app.command()
-def save(robot: RobotOpt = None, connect: ConnectOpt = None, mode: ModeOpt = None, config: ConfigOpt = None,
-         timeout: Annotated[float, typer.Option("--timeout", help="seconds to wait for the files")] = 120.0,
-         as_json: Annotated[bool, typer.Option("--json", help="print the JSON reply")] = False) -> None:
+def save(
+    robot: RobotOpt = None,
+    connect: ConnectOpt = None,
+    mode: ModeOpt = None,
+    config: ConfigOpt = None,
+    timeout: Annotated[float, typer.Option("--timeout", help="seconds to wait for the files")] = 120.0,
+    as_json: Annotated[bool, typer.Option("--json", help="print the JSON reply")] = False,
+) -> None:
     """Ask a running service to write its outputs (trajectory, objects, loops, report, map) into its state dir."""
     from service.client import query
 
@@ -138,14 +164,21 @@ def save(robot: RobotOpt = None, connect: ConnectOpt = None, mode: ModeOpt = Non
     if as_json:
         print(json.dumps(reply, indent=1))
     else:
-        console.print(f"{reply['robot']}: {reply['keyframes']} keyframes of {reply['frames_processed']} frames "
-                      f"written to {reply['dir']} in {reply['seconds']:.1f} s: {', '.join(reply['files'])}")
+        console.print(
+            f"{reply['robot']}: {reply['keyframes']} keyframes of {reply['frames_processed']} frames "
+            f"written to {reply['dir']} in {reply['seconds']:.1f} s: {', '.join(reply['files'])}"
+        )
 
 
 @app.command()
-def status(what: Annotated[QueryKind, typer.Argument()] = QueryKind.status,
-           as_json: Annotated[bool, typer.Option("--json", help="print the JSON reply")] = False,
-           robot: RobotOpt = None, connect: ConnectOpt = None, mode: ModeOpt = None, config: ConfigOpt = None) -> None:
+def status(
+    what: Annotated[QueryKind, typer.Argument()] = QueryKind.status,
+    as_json: Annotated[bool, typer.Option("--json", help="print the JSON reply")] = False,
+    robot: RobotOpt = None,
+    connect: ConnectOpt = None,
+    mode: ModeOpt = None,
+    config: ConfigOpt = None,
+) -> None:
     """Query a running service (status, objects, trajectory or loops)."""
     from service.client import query, render_reply
 
@@ -158,29 +191,38 @@ def status(what: Annotated[QueryKind, typer.Argument()] = QueryKind.status,
 
 
 @app.command()
-def run(dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?seed=N&frames=N")],
-        out: Annotated[Path, typer.Option("--out", help="output directory")],
-        config: ConfigOpt = None,
-        max_frames: Annotated[int | None, typer.Option("--max-frames")] = None,
-        lc_source: Annotated[LcSource | None, typer.Option("--lc-source")] = None,
-        lc_policy: Annotated[Path | None, typer.Option("--lc-policy")] = None,
-        depth_scale: Annotated[float | None, typer.Option("--depth-scale")] = None,
-        fx: Annotated[float | None, typer.Option("--fx")] = None,
-        fy: Annotated[float | None, typer.Option("--fy")] = None,
-        cx: Annotated[float | None, typer.Option("--cx")] = None,
-        cy: Annotated[float | None, typer.Option("--cy")] = None) -> None:
+def run(
+    dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?seed=N&frames=N")],
+    out: Annotated[Path, typer.Option("--out", help="output directory")],
+    config: ConfigOpt = None,
+    max_frames: Annotated[int | None, typer.Option("--max-frames")] = None,
+    lc_source: Annotated[LcSource | None, typer.Option("--lc-source")] = None,
+    lc_policy: Annotated[Path | None, typer.Option("--lc-policy")] = None,
+    depth_scale: Annotated[float | None, typer.Option("--depth-scale")] = None,
+    fx: Annotated[float | None, typer.Option("--fx")] = None,
+    fy: Annotated[float | None, typer.Option("--fy")] = None,
+    cx: Annotated[float | None, typer.Option("--cx")] = None,
+    cy: Annotated[float | None, typer.Option("--cy")] = None,
+) -> None:
     """Run the whole pipeline on one dataset over an embedded zenoh session; write the outputs."""
     from service.run import run_dataset
     from service.summary import print_summary
 
-    summary = run_dataset(dataset, out, _with_lc(_settings(config), lc_source, lc_policy), max_frames,
-                          _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy))
+    summary = run_dataset(
+        dataset,
+        out,
+        _with_lc(_settings(config), lc_source, lc_policy),
+        max_frames,
+        _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy),
+    )
     print_summary(console, summary, out)
 
 
 @app.command("eval")
-def evaluate_cmd(run_dir: Annotated[Path, typer.Argument(help="a run output directory")],
-                 gt: Annotated[str, typer.Option("--gt", help="the dataset with ground truth")]) -> None:
+def evaluate_cmd(
+    run_dir: Annotated[Path, typer.Argument(help="a run output directory")],
+    gt: Annotated[str, typer.Option("--gt", help="the dataset with ground truth")],
+) -> None:
     """A run directory against a dataset's ground truth: ATE / RPE and, with ground-truth objects, object
     metrics; writes its section of report.md, metrics.json and eval.png."""
     from service.evaluate import evaluate_run
@@ -189,8 +231,10 @@ def evaluate_cmd(run_dir: Annotated[Path, typer.Argument(help="a run output dire
 
 
 @app.command("config")
-def config_cmd(dump: Annotated[bool, typer.Option("--dump", help="print the default configuration")] = False,
-               config: ConfigOpt = None) -> None:
+def config_cmd(
+    dump: Annotated[bool, typer.Option("--dump", help="print the default configuration")] = False,
+    config: ConfigOpt = None,
+) -> None:
     """Print the default configuration (--dump) or the effective one."""
     import yaml
 
@@ -200,19 +244,20 @@ def config_cmd(dump: Annotated[bool, typer.Option("--dump", help="print the defa
         print(yaml.safe_dump(load_settings(config).model_dump(mode="json"), sort_keys=False), end="")
 
 
-calibrate_app = typer.Typer(help="Sensor calibration against a dataset's reference trajectory, and the reference "
-                                  "checked against the sensor.")
+calibrate_app = typer.Typer(
+    help="Sensor calibration against a dataset's reference trajectory, and the reference checked against the sensor."
+)
 app.add_typer(calibrate_app, name="calibrate")
 
 
 @calibrate_app.command("depth-scale")
 def calibrate_depth_scale_cmd(
-        dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?... with ground truth")],
-        start: Annotated[int, typer.Option("--start", help="first frame of the pairs")] = 0,
-        stop: Annotated[int | None, typer.Option("--stop", help="frames before this one (default: all)")] = None,
-        gap: Annotated[int, typer.Option("--gap", help="frames between the two of a pair")] = 15,
-        stride: Annotated[int, typer.Option("--stride", help="a pair every N frames")] = 3,
-        depth_scale: Annotated[float | None, typer.Option("--depth-scale", help="nominal units per metre")] = None,
+    dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?... with ground truth")],
+    start: Annotated[int, typer.Option("--start", help="first frame of the pairs")] = 0,
+    stop: Annotated[int | None, typer.Option("--stop", help="frames before this one (default: all)")] = None,
+    gap: Annotated[int, typer.Option("--gap", help="frames between the two of a pair")] = 15,
+    stride: Annotated[int, typer.Option("--stride", help="a pair every N frames")] = 3,
+    depth_scale: Annotated[float | None, typer.Option("--depth-scale", help="nominal units per metre")] = None,
 ) -> None:
     """The depth sensor's scale against the ground truth: depth ICP between frame pairs, started at the
     reference motion, against that motion. Prints the calibrated depth units per metre (for --depth-scale or
@@ -226,25 +271,33 @@ def calibrate_depth_scale_cmd(
     except ValueError as exc:
         raise UserError(f"{dataset}: {exc}") from None
     nominal = data.camera.depth_scale
-    console.print(f"pairs {estimate.pairs} ({gap} frames apart); depth ICP / reference translation: median "
-                  f"{estimate.ratio:.4f}, quartiles {estimate.q25:.4f} .. {estimate.q75:.4f}")
-    console.print(f"depth units per metre: nominal {nominal:g}, calibrated "
-                  f"{estimate.calibrated_depth_scale(nominal):.1f}")
+    console.print(
+        f"pairs {estimate.pairs} ({gap} frames apart); depth ICP / reference translation: median "
+        f"{estimate.ratio:.4f}, quartiles {estimate.q25:.4f} .. {estimate.q75:.4f}"
+    )
+    console.print(
+        f"depth units per metre: nominal {nominal:g}, calibrated {estimate.calibrated_depth_scale(nominal):.1f}"
+    )
 
 
 @calibrate_app.command("reference")
 def calibrate_reference_cmd(
-        dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?... with ground truth")],
-        start: Annotated[int, typer.Option("--start", help="first frame of the pairs")] = 0,
-        stop: Annotated[int | None, typer.Option("--stop", help="frames before this one (default: all)")] = None,
-        gap: Annotated[int, typer.Option("--gap", help="frames between the two of a pair")] = 1,
-        stride: Annotated[int, typer.Option("--stride", help="a pair every N frames")] = 1,
-        margin_mm: Annotated[float, typer.Option("--margin-mm", help="refuted: the reference's depth residual "
-                                                 "exceeds the depth optimum's by more than this")] = 5.0,
-        loops: Annotated[Path | None, typer.Option("--loops", help="a run directory: check its accepted loops "
-                                                   "(loops.json) too")] = None,
-        depth_scale: Annotated[float | None, typer.Option("--depth-scale", help="nominal units per metre")] = None,
-        write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None,
+    dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?... with ground truth")],
+    start: Annotated[int, typer.Option("--start", help="first frame of the pairs")] = 0,
+    stop: Annotated[int | None, typer.Option("--stop", help="frames before this one (default: all)")] = None,
+    gap: Annotated[int, typer.Option("--gap", help="frames between the two of a pair")] = 1,
+    stride: Annotated[int, typer.Option("--stride", help="a pair every N frames")] = 1,
+    margin_mm: Annotated[
+        float,
+        typer.Option(
+            "--margin-mm", help="refuted: the reference's depth residual exceeds the depth optimum's by more than this"
+        ),
+    ] = 5.0,
+    loops: Annotated[
+        Path | None, typer.Option("--loops", help="a run directory: check its accepted loops (loops.json) too")
+    ] = None,
+    depth_scale: Annotated[float | None, typer.Option("--depth-scale", help="nominal units per metre")] = None,
+    write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None,
 ) -> None:
     """The reference trajectory checked against the dataset's own depth: for frame pairs, the depth residual of
     the reference motion, of the motion the depth prefers (ICP started at the reference) and of no motion.
@@ -254,9 +307,18 @@ def calibrate_reference_cmd(
 
     data = open_dataset(dataset, _camera_overrides(depth_scale=depth_scale))
     try:
-        options = "".join(f" --{name} {value:g}" for name, value, default in (
-            ("start", start, 0), ("stop", stop, None), ("gap", gap, 1), ("stride", stride, 1),
-            ("margin-mm", margin_mm, 5.0), ("depth-scale", depth_scale, None)) if value != default)
+        options = "".join(
+            f" --{name} {value:g}"
+            for name, value, default in (
+                ("start", start, 0),
+                ("stop", stop, None),
+                ("gap", gap, 1),
+                ("stride", stride, 1),
+                ("margin-mm", margin_mm, 5.0),
+                ("depth-scale", depth_scale, None),
+            )
+            if value != default
+        )
         report_reference(console, data, dataset, start, stop, gap, stride, margin_mm / 1000.0, loops, write, options)
     except (ValueError, OSError) as exc:
         raise UserError(f"{dataset}: {exc}") from None
@@ -267,10 +329,11 @@ app.add_typer(bench_app, name="bench")
 
 
 @bench_app.command("throughput")
-def bench_throughput(frames: Annotated[int, typer.Option("--frames")] = 300,
-                     dataset: Annotated[str, typer.Option("--dataset")] = "synthetic:room?seed=0",
-                     write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None
-                     ) -> None:
+def bench_throughput(
+    frames: Annotated[int, typer.Option("--frames")] = 300,
+    dataset: Annotated[str, typer.Option("--dataset")] = "synthetic:room?seed=0",
+    write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None,
+) -> None:
     """Replay-to-graph throughput at max rate over zenoh (frames pre-encoded, service in a subprocess)."""
     from bench.throughput import run_throughput
 
@@ -278,10 +341,12 @@ def bench_throughput(frames: Annotated[int, typer.Option("--frames")] = 300,
 
 
 @bench_app.command("isam2")
-def bench_isam2(poses: Annotated[int, typer.Option("--poses")] = 10_000,
-                landmarks: Annotated[int, typer.Option("--landmarks")] = 300,
-                seed: Annotated[int, typer.Option("--seed")] = 0,
-                write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None) -> None:
+def bench_isam2(
+    poses: Annotated[int, typer.Option("--poses")] = 10_000,
+    landmarks: Annotated[int, typer.Option("--landmarks")] = 300,
+    seed: Annotated[int, typer.Option("--seed")] = 0,
+    write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None,
+) -> None:
     """iSAM2 update cost on a simulated exploration: odometry, loop closures, landmark observations."""
     from bench.isam2 import run_isam2_bench
 
@@ -291,13 +356,15 @@ def bench_isam2(poses: Annotated[int, typer.Option("--poses")] = 10_000,
 
 
 @bench_app.command("overload")
-def bench_overload(seconds: Annotated[float, typer.Option("--seconds", help="overload duration")] = 60.0,
-                   factor: Annotated[float, typer.Option("--factor", help="publish rate / processing rate")] = 3.0,
-                   frames: Annotated[int | None, typer.Option(
-                       "--frames", help="instead: a paced run of N frames (none dropped) for RSS growth")] = None,
-                   dataset: Annotated[str, typer.Option("--dataset")] = "synthetic:room?seed=0",
-                   write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None
-                   ) -> None:
+def bench_overload(
+    seconds: Annotated[float, typer.Option("--seconds", help="overload duration")] = 60.0,
+    factor: Annotated[float, typer.Option("--factor", help="publish rate / processing rate")] = 3.0,
+    frames: Annotated[
+        int | None, typer.Option("--frames", help="instead: a paced run of N frames (none dropped) for RSS growth")
+    ] = None,
+    dataset: Annotated[str, typer.Option("--dataset")] = "synthetic:room?seed=0",
+    write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None,
+) -> None:
     """Publish faster than serve processes: bounded memory, counted drops, status latency under load."""
     from bench.overload import run_overload
 
@@ -338,13 +405,19 @@ def bench_landmarks(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None
 
 
 @bench_app.command("policy-loops")
-def bench_policy_loops(dataset: DatasetsOpt = None,
-                       steps: Annotated[int, typer.Option("--steps", help="policy training steps per map")] = 100_000,
-                       init_from: Annotated[str, typer.Option(
-                           "--init-from", help="checkpoint (.pt) that starts each policy; default: the config1 policy "
-                           "before memory pretraining, models/lc/config1.init.pt ('' = from scratch)")]
-                       = "config1",
-                       write: WriteOpt = None) -> None:
+def bench_policy_loops(
+    dataset: DatasetsOpt = None,
+    steps: Annotated[int, typer.Option("--steps", help="policy training steps per map")] = 100_000,
+    init_from: Annotated[
+        str,
+        typer.Option(
+            "--init-from",
+            help="checkpoint (.pt) that starts each policy; default: the config1 policy "
+            "before memory pretraining, models/lc/config1.init.pt ('' = from scratch)",
+        ),
+    ] = "config1",
+    write: WriteOpt = None,
+) -> None:
     """Two passes per dataset: map + grid world, train a policy, re-run with policy loop closures."""
     from bench.policy_loops import run_policy_loops_bench
     from rl.commands import INIT_CHECKPOINT, POLICY_DIR
@@ -354,11 +427,12 @@ def bench_policy_loops(dataset: DatasetsOpt = None,
 
 
 @bench_app.command("lc-batch")
-def bench_lc_batch(grid: Annotated[str, typer.Option("--map", help="grid configuration")] = "config2",
-                   steps: Annotated[int, typer.Option("--steps", help="training steps per variant")] = 40_000,
-                   plot: Annotated[Path, typer.Option("--plot", help="reward-curve PNG")] =
-                   Path("docs/lc_batch_ablation.png"),
-                   write: WriteOpt = None) -> None:
+def bench_lc_batch(
+    grid: Annotated[str, typer.Option("--map", help="grid configuration")] = "config2",
+    steps: Annotated[int, typer.Option("--steps", help="training steps per variant")] = 40_000,
+    plot: Annotated[Path, typer.Option("--plot", help="reward-curve PNG")] = Path("docs/lc_batch_ablation.png"),
+    write: WriteOpt = None,
+) -> None:
     """Fig. 3.10: fixed 512, fixed 2048 and entropy-based batch sizes, reward curves and evaluation."""
     from bench.lc_ablation import run_batch_ablation
 
@@ -373,8 +447,9 @@ def _seeds(text: str) -> list[int]:
 
 
 @bench_app.command("association")
-def bench_association(seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Option("--frames")] = 300,
-                      write: WriteOpt = None) -> None:
+def bench_association(
+    seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Option("--frames")] = 300, write: WriteOpt = None
+) -> None:
     """NPDA precision/recall on synthetic keyframes, the Table 2.2 grid, ablation and timing."""
     from bench.association import run_association_bench
 
@@ -382,8 +457,9 @@ def bench_association(seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Op
 
 
 @bench_app.command("objects")
-def bench_objects(seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Option("--frames")] = 300,
-                  write: WriteOpt = None) -> None:
+def bench_objects(
+    seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Option("--frames")] = 300, write: WriteOpt = None
+) -> None:
     """Objects mapped / present, false objects, ground-plane IoU and centroid error on synthetic scenes."""
     from bench.objects import run_objects_bench
 
@@ -391,8 +467,11 @@ def bench_objects(seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Option
 
 
 @bench_app.command("stages")
-def bench_stages(dataset: Annotated[str, typer.Option("--dataset", help="dataset spec")],
-                 frames: Annotated[int | None, typer.Option("--frames")] = None, write: WriteOpt = None) -> None:
+def bench_stages(
+    dataset: Annotated[str, typer.Option("--dataset", help="dataset spec")],
+    frames: Annotated[int | None, typer.Option("--frames")] = None,
+    write: WriteOpt = None,
+) -> None:
     """Per-stage latency of the whole pipeline; keyframes/s of detection + association."""
     from bench.stages import run_stages_bench
 
@@ -400,11 +479,13 @@ def bench_stages(dataset: Annotated[str, typer.Option("--dataset", help="dataset
 
 
 @bench_app.command("persistence")
-def bench_persistence(dataset: Annotated[str, typer.Option("--dataset", help="dataset spec")] =
-                      "synthetic:room?seed=0&frames=800&fps=10&revolutions=4.5",
-                      keyframes: Annotated[str, typer.Option("--keyframes", help="checkpoints, comma separated")] =
-                      "100,200,300",
-                      write: WriteOpt = None) -> None:
+def bench_persistence(
+    dataset: Annotated[
+        str, typer.Option("--dataset", help="dataset spec")
+    ] = "synthetic:room?seed=0&frames=800&fps=10&revolutions=4.5",
+    keyframes: Annotated[str, typer.Option("--keyframes", help="checkpoints, comma separated")] = "100,200,300",
+    write: WriteOpt = None,
+) -> None:
     """Snapshot capture / write / load / restore time and size against the number of keyframes."""
     from bench.persistence import run_persistence_bench
 
@@ -416,8 +497,11 @@ def bench_persistence(dataset: Annotated[str, typer.Option("--dataset", help="da
 
 
 @bench_app.command("frontends")
-def bench_frontends(dataset: Annotated[str, typer.Option("--dataset", help="dataset with ground truth")],
-                    frames: Annotated[int, typer.Option("--frames")] = 400, write: WriteOpt = None) -> None:
+def bench_frontends(
+    dataset: Annotated[str, typer.Option("--dataset", help="dataset with ground truth")],
+    frames: Annotated[int, typer.Option("--frames")] = 400,
+    write: WriteOpt = None,
+) -> None:
     """Compare odometry front-end candidates (ORB, ORB + ICP, SIFT) on a real segment."""
     from bench.frontends import run_frontends_bench
 
@@ -425,9 +509,11 @@ def bench_frontends(dataset: Annotated[str, typer.Option("--dataset", help="data
 
 
 @bench_app.command("detector")
-def bench_detector(dataset: Annotated[str, typer.Option("--dataset", help="dataset directory")],
-                   every: Annotated[int, typer.Option("--every", help="every N-th frame")] = 10,
-                   write: WriteOpt = None) -> None:
+def bench_detector(
+    dataset: Annotated[str, typer.Option("--dataset", help="dataset directory")],
+    every: Annotated[int, typer.Option("--every", help="every N-th frame")] = 10,
+    write: WriteOpt = None,
+) -> None:
     """Detector speed and detections per class on real frames; saves contact sheets in docs/."""
     from bench.detector import run_detector_bench
 

@@ -10,8 +10,9 @@ from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, Field, ValidationError
-from sources.tum import CameraDefaults
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
+
+from sources.tum import CameraDefaults
 
 
 class ConfigError(Exception):
@@ -46,8 +47,12 @@ class KeyframeSettings(BaseModel):
     rotation_deg: float = Field(5.0, gt=0)
     max_interval: int = Field(10, ge=1, description="frames between keyframes at most")
     min_inliers: int = Field(120, ge=0, description="visual odometry: new keyframe when tracking weakens")
-    skip_edges: int = Field(2, ge=1, description="visual odometry: factors from a new keyframe to this many earlier "
-                            "keyframes (1 = the previous one only)")
+    skip_edges: int = Field(
+        2,
+        ge=1,
+        description="visual odometry: factors from a new keyframe to this many earlier "
+        "keyframes (1 = the previous one only)",
+    )
 
 
 class OdometrySettings(BaseModel):
@@ -102,8 +107,11 @@ class DetectorSettings(BaseModel):
     class_thresholds: dict[str, float] | None = Field(None, description="per-class minimum scores")
     nms_iou: float = Field(0.5, gt=0, le=1)
     max_detections: int = Field(50, ge=1)
-    fit_aspect: bool = Field(False, description="centernet: a 512-wide input as high as the image's aspect needs "
-                             "(512 x 384 for 4:3) instead of the letterboxed 512 x 512: faster, fewer detections")
+    fit_aspect: bool = Field(
+        False,
+        description="centernet: a 512-wide input as high as the image's aspect needs "
+        "(512 x 384 for 4:3) instead of the letterboxed 512 x 512: faster, fewer detections",
+    )
 
 
 class ObjectSettings(BaseModel):
@@ -115,12 +123,20 @@ class ObjectSettings(BaseModel):
     landmark_sigma_m: float = Field(0.1, gt=0, description="sigma of an object centroid measurement (m)")
     landmark_huber_k: float | None = Field(1.345, gt=0, description="Huber kernel of object measurements; null = none")
     landmark_min_support: int = Field(5, ge=1, description="feature vectors an object needs to become a landmark")
-    landmark_extent_scale: float = Field(1.0, ge=0, description="a measurement's sigma is at least this times "
-                                                                "the largest std of the object's points")
-    landmark_range_scale: float = Field(3.0, ge=1, description="sigma along the viewing ray = this times the sigma "
-                                        "across it: the visible surface's centroid lies short of the object's")
-    repose_m: float = Field(0.01, gt=0, description="re-pose and re-cluster objects once an optimisation has "
-                                                    "moved an observing keyframe this far (m)")
+    landmark_extent_scale: float = Field(
+        1.0, ge=0, description="a measurement's sigma is at least this times the largest std of the object's points"
+    )
+    landmark_range_scale: float = Field(
+        3.0,
+        ge=1,
+        description="sigma along the viewing ray = this times the sigma "
+        "across it: the visible surface's centroid lies short of the object's",
+    )
+    repose_m: float = Field(
+        0.01,
+        gt=0,
+        description="re-pose and re-cluster objects once an optimisation has moved an observing keyframe this far (m)",
+    )
     repose_deg: float = Field(0.5, gt=0, description="... or turned it this much (degrees)")
 
 
@@ -131,11 +147,19 @@ class GraphSettings(BaseModel):
     odometry_sigma_deg: float = Field(1.0, gt=0, description="odometry between-factor rotation sigma")
     prior_sigma_m: float = Field(1e-4, gt=0)
     prior_sigma_deg: float = Field(0.01, gt=0)
-    relinearize_threshold: float = Field(0.1, gt=0, description="iSAM2 relinearizeThreshold (gtsam's default; "
-                                          "`objslam bench isam2`: p95 update 4x lower than 0.01, same ATE)")
+    relinearize_threshold: float = Field(
+        0.1,
+        gt=0,
+        description="iSAM2 relinearizeThreshold (gtsam's default; "
+        "`objslam bench isam2`: p95 update 4x lower than 0.01, same ATE)",
+    )
     relinearize_skip: int = Field(1, ge=1)
-    window_keyframes: int = Field(400, ge=2, description="keyframes in the bounded iSAM2 window (older ones are "
-                                  "fixed there; the whole graph is solved in a child process)")
+    window_keyframes: int = Field(
+        400,
+        ge=2,
+        description="keyframes in the bounded iSAM2 window (older ones are "
+        "fixed there; the whole graph is solved in a child process)",
+    )
     window_step: int = Field(100, ge=1, description="keyframes added before the window rolls forward")
 
 

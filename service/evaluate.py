@@ -15,10 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from graph.trajectory import match_timestamps
-from perception.clustering import ClusterConfig
 from evaluation.object_metrics import aligned_objects, object_scores
 from evaluation.trajectory_metrics import error_dict, evaluate
+from graph.trajectory import match_timestamps
+from perception.clustering import ClusterConfig
 from service.outputs import ate_table, atomic_write
 from sources import DatasetError, Trajectory, open_dataset
 from sources.tum import read_trajectory
@@ -33,13 +33,19 @@ def evaluate_run(run_dir: Path, gt_spec: str) -> str:
     gt = data.ground_truth
     if gt is None:
         raise DatasetError(f"{gt_spec} has no ground truth")
-    runs = {name: read_trajectory(run_dir / f"{name}.tum") for name in ("trajectory", "odometry")
-            if (run_dir / f"{name}.tum").is_file()}
+    runs = {
+        name: read_trajectory(run_dir / f"{name}.tum")
+        for name in ("trajectory", "odometry")
+        if (run_dir / f"{name}.tum").is_file()
+    }
     errors = {name: err for name, traj in runs.items() if (err := evaluate(traj, gt)) is not None}
     if not errors:
         raise DatasetError(f"{run_dir}: no trajectory.tum poses match the ground-truth timestamps")
-    result: dict[str, Any] = {"dataset": gt_spec, "run": str(run_dir),
-                              "ate": {name: error_dict(err) for name, err in errors.items()}}
+    result: dict[str, Any] = {
+        "dataset": gt_spec,
+        "run": str(run_dir),
+        "ate": {name: error_dict(err) for name, err in errors.items()},
+    }
     truth, objects_file = data.objects, run_dir / "objects.json"
     if truth and objects_file.is_file() and "trajectory" in errors:
         mapped = aligned_objects(json.loads(objects_file.read_text()), errors["trajectory"].alignment)
@@ -50,8 +56,11 @@ def evaluate_run(run_dir: Path, gt_spec: str) -> str:
     atomic_write(run_dir / "metrics.json", json.dumps(result, indent=1))
     from evaluation.plot import plot_errors  # matplotlib is slow to import
 
-    plot_errors(run_dir / "eval.png", {name: position_errors(runs[name], gt, err.alignment)
-                                       for name, err in errors.items()}, gt_spec)
+    plot_errors(
+        run_dir / "eval.png",
+        {name: position_errors(runs[name], gt, err.alignment) for name, err in errors.items()},
+        gt_spec,
+    )
     return section
 
 
@@ -69,13 +78,17 @@ def evaluation_markdown(result: dict[str, Any]) -> str:
     if objects is not None:
         iou = "-" if objects["mean_iou"] is None else f"{objects['mean_iou']:.2f}"
         err = "-" if objects["median_centroid_error_m"] is None else f"{objects['median_centroid_error_m']:.3f}"
-        lines += ["", "| ground-truth objects | mapped | matched | false | mean ground-plane IoU | "
-                      "median centroid error (m) |", "|---|---|---|---|---|---|",
-                  f"| {objects['ground_truth']} | {objects['mapped']} | {objects['matched']} | {objects['false']} | "
-                  f"{iou} | {err} |", "",
-                  f"Objects in the trajectory's ATE alignment; a mapped object matches a true one of its label when "
-                  f"its centre lies inside the true box grown by 0.25 m (one-to-one); IoU of the ellipse at "
-                  f"{objects['axis_scale']:g} std with the true box footprint."]
+        lines += [
+            "",
+            "| ground-truth objects | mapped | matched | false | mean ground-plane IoU | median centroid error (m) |",
+            "|---|---|---|---|---|---|",
+            f"| {objects['ground_truth']} | {objects['mapped']} | {objects['matched']} | {objects['false']} | "
+            f"{iou} | {err} |",
+            "",
+            f"Objects in the trajectory's ATE alignment; a mapped object matches a true one of its label when "
+            f"its centre lies inside the true box grown by 0.25 m (one-to-one); IoU of the ellipse at "
+            f"{objects['axis_scale']:g} std with the true box footprint.",
+        ]
     lines += ["", "Per-frame position error: `eval.png`; figures: `metrics.json`."]
     return "\n".join(lines) + "\n"
 

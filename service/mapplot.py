@@ -7,11 +7,11 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from evaluation.trajectory_metrics import TrajectoryError  # noqa: E402
-from graph.trajectory import Trajectory  # noqa: E402
+from evaluation.trajectory_metrics import TrajectoryError
+from graph.trajectory import Trajectory
 
 
 def ground_axes(points: np.ndarray) -> np.ndarray:
@@ -40,9 +40,15 @@ def plot_objects(ax, objects: list[dict], axes: np.ndarray, origin: np.ndarray) 
             ax.plot(*mark[:2], marker="x", ms=5, color=colours(i % 10))
 
 
-def plot_map(path: Path, trajectory: Trajectory, odometry: Trajectory, gt: Trajectory | None,
-             error: TrajectoryError | None, objects: list[dict] | None = None,
-             loops: list[dict] | None = None) -> None:
+def plot_map(
+    path: Path,
+    trajectory: Trajectory,
+    odometry: Trajectory,
+    gt: Trajectory | None,
+    error: TrajectoryError | None,
+    objects: list[dict] | None = None,
+    loops: list[dict] | None = None,
+) -> None:
     """Draw optimised trajectory, odometry and (aligned) ground truth projected on the ground plane."""
     fig, ax = plt.subplots(figsize=(7, 7), dpi=110)
     if len(trajectory):
@@ -55,7 +61,7 @@ def plot_map(path: Path, trajectory: Trajectory, odometry: Trajectory, gt: Traje
             ax.plot(*(g_est @ axes.T).T, color="0.6", lw=1.5, label="ground truth (aligned)")
         ax.plot(*(odometry.poses[:, :3, 3] @ axes.T).T, color="tab:orange", lw=1, ls="--", label="odometry")
         by_t = {float(t): p for t, p in zip(trajectory.timestamps, pts)}
-        for r in (loops or []):
+        for r in loops or []:
             a, b = by_t.get(float(r["match_t"])), by_t.get(float(r["query_t"]))
             if r.get("accepted") and a is not None and b is not None:
                 ax.plot(*(np.stack([a, b]) @ axes.T).T, color="tab:red", lw=0.8, alpha=0.6)

@@ -27,15 +27,15 @@ import zenoh
 
 from graph.geometry import pose_to_tum
 from graph.pose_graph import SolverError
+from graph.trajectory import Trajectory
+from perception.frame import Frame
 from service.config import Settings
 from service.ingest import IngestQueue
 from service.outputs import run_summary, write_outputs
 from service.persistence import Persistence
-from slam.core import Pipeline
 from service.protocol import VERSION, FrameRejected, Limits, decode_frame
-from perception.frame import Frame
-from graph.trajectory import Trajectory
 from service.stats import ServiceStats
+from slam.core import Pipeline
 
 log = logging.getLogger(__name__)
 
@@ -97,8 +97,12 @@ class ServiceNode:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         s, p = self.session, self.prefix
         self._entities.append(s.declare_subscriber(f"{p}/rgbd", self._on_frame))  # first: ``stop`` relies on it
-        for name, handler in (("status", self.status), ("trajectory", self.trajectory_reply),
-                              ("objects", self.objects_reply), ("loops", self.loops_reply)):
+        for name, handler in (
+            ("status", self.status),
+            ("trajectory", self.trajectory_reply),
+            ("objects", self.objects_reply),
+            ("loops", self.loops_reply),
+        ):
             self._entities.append(s.declare_queryable(f"{p}/{name}", self._replier(name, handler)))
         self._entities.append(s.declare_queryable(f"{p}/save", self._on_save))
         self.events = s.declare_publisher(f"{p}/events")
@@ -291,18 +295,24 @@ class ServiceNode:
         """The pipeline and the frame counters. Frames still queued are not in the pipeline's state, so the
         saved ``received`` counts only the frames the state accounts for."""
         stats = self.stats.counters()
-        stats["received"] = stats["processed"] + sum(stats["rejected"].values()) + sum(stats["errors"].values()) \
-            + self.queue.dropped
-        return {"pipeline": self.pipeline.state(), "stats": stats, "frames_dropped": self.queue.dropped,
-                "settings": _map_settings(self.settings)}
+        stats["received"] = (
+            stats["processed"] + sum(stats["rejected"].values()) + sum(stats["errors"].values()) + self.queue.dropped
+        )
+        return {
+            "pipeline": self.pipeline.state(),
+            "stats": stats,
+            "frames_dropped": self.queue.dropped,
+            "settings": _map_settings(self.settings),
+        }
 
     def _restore(self, state: dict[str, Any]) -> None:
         """Continue from a snapshot's state (built completely before anything is replaced)."""
         saved, current = state["settings"], _map_settings(self.settings)
         changed = sorted(k for k in saved.keys() | current.keys() if saved.get(k) != current.get(k))
         if changed:
-            log.warning("resuming a map made with other settings of %s; the current ones apply from now on",
-                        ", ".join(changed))
+            log.warning(
+                "resuming a map made with other settings of %s; the current ones apply from now on", ", ".join(changed)
+            )
         pipeline = Pipeline.from_state(self.settings, state["pipeline"], background=True)
         self.pipeline.close()
         self.pipeline = pipeline
@@ -327,14 +337,21 @@ class ServiceNode:
         accepted = p.loops.n_accepted if p.loops is not None else 0
         key = (len(records), accepted)
         loops = old.loops if key == old.loops_key else [dict(r) for r in records]
-        counts = {"keyframes": graph.num_keyframes, "poses": graph.num_keyframes, "factors": graph.num_factors,
-                  "landmarks": graph.num_landmarks, "tracking_lost": p.tracking_lost,
-                  "landmark_measurements": len(p.landmarks.assigned) if p.landmarks is not None else 0,
-                  "object_reposes": p.reposes, "object_mapping_errors": p.mapping_errors,
-                  "loop_closures": {"accepted": accepted, "rejected": len(records) - accepted},
-                  "graph_window": {"first_keyframe": graph.start, "whole_graph_solves": graph.global_solves},
-                  "keyframe_detections_by_class": dict(p.detections_by_class), "objects": len(objects),
-                  "objects_by_class": dict(Counter(o["label"] for o in objects))}
+        counts = {
+            "keyframes": graph.num_keyframes,
+            "poses": graph.num_keyframes,
+            "factors": graph.num_factors,
+            "landmarks": graph.num_landmarks,
+            "tracking_lost": p.tracking_lost,
+            "landmark_measurements": len(p.landmarks.assigned) if p.landmarks is not None else 0,
+            "object_reposes": p.reposes,
+            "object_mapping_errors": p.mapping_errors,
+            "loop_closures": {"accepted": accepted, "rejected": len(records) - accepted},
+            "graph_window": {"first_keyframe": graph.start, "whole_graph_solves": graph.global_solves},
+            "keyframe_detections_by_class": dict(p.detections_by_class),
+            "objects": len(objects),
+            "objects_by_class": dict(Counter(o["label"] for o in objects)),
+        }
         summary = MapSummary(counts, objects, p.object_map_version, loops, key, objects_key)
         with self._summary_lock:
             self._summary = summary
@@ -392,9 +409,14 @@ class ServiceNode:
                 out = Path(self.settings.state_dir)
                 summary = self.write_outputs(out)
                 files = sorted(path.name for path in out.iterdir() if path.is_file())
-                body = {"robot": self.settings.robot, "dir": str(out), "files": files,
-                        "keyframes": summary["keyframes"], "frames_processed": summary["frames_processed"],
-                        "seconds": round(time.perf_counter() - t0, 3)}
+                body = {
+                    "robot": self.settings.robot,
+                    "dir": str(out),
+                    "files": files,
+                    "keyframes": summary["keyframes"],
+                    "frames_processed": summary["frames_processed"],
+                    "seconds": round(time.perf_counter() - t0, 3),
+                }
                 query.reply(f"{self.prefix}/save", json.dumps(body).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
             except Exception as exc:  # a failed save must not take the service down
                 log.exception("save request failed")
@@ -409,8 +431,9 @@ class ServiceNode:
         summary = run_summary(f"serve {self.prefix}", status["frames_received"], status["uptime_s"], status)
         with self._lock:  # iSAM2's estimate cache: not beside the worker (this may run on another thread)
             cloud = self.pipeline.cloud()
-        return write_outputs(out, traj, odom, summary, None, self.objects_reply()["objects"],
-                             self.loops_reply()["loops"], cloud)
+        return write_outputs(
+            out, traj, odom, summary, None, self.objects_reply()["objects"], self.loops_reply()["loops"], cloud
+        )
 
     def _replier(self, name: str, handler):
         def reply(query: zenoh.Query) -> None:
@@ -466,5 +489,6 @@ class ServiceNode:
 
 def _map_settings(settings: Settings) -> dict[str, Any]:
     """The settings sections that shape the map (not endpoints, queue or state dir), to compare on resume."""
-    return settings.model_dump(mode="json", include={"keyframes", "odometry", "loops", "detector", "objects",
-                                                     "graph", "camera"})
+    return settings.model_dump(
+        mode="json", include={"keyframes", "odometry", "loops", "detector", "objects", "graph", "camera"}
+    )

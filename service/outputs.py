@@ -11,9 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from graph.geometry import pose_to_tum
 from evaluation.trajectory_metrics import error_dict, evaluate
-
+from graph.geometry import pose_to_tum
 from graph.trajectory import Trajectory
 
 
@@ -36,9 +35,16 @@ def tum_text(traj: Trajectory) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_outputs(out: Path, trajectory: Trajectory, odometry: Trajectory, summary: dict[str, Any],
-                  gt: Trajectory | None, objects: list | None = None, loops: list | None = None,
-                  cloud: np.ndarray | None = None) -> dict[str, Any]:
+def write_outputs(
+    out: Path,
+    trajectory: Trajectory,
+    odometry: Trajectory,
+    summary: dict[str, Any],
+    gt: Trajectory | None,
+    objects: list | None = None,
+    loops: list | None = None,
+    cloud: np.ndarray | None = None,
+) -> dict[str, Any]:
     """Write every output file into ``out``; returns the summary with the metrics added.
 
     With map points (``cloud``) also ``cloud.npy`` and, when the trajectory crosses itself, the map's grid
@@ -51,8 +57,10 @@ def write_outputs(out: Path, trajectory: Trajectory, odometry: Trajectory, summa
         atomic_write(out / "cloud.npy", buf.getvalue())
         from rl.map_files import try_write_grid
 
-        summary = {**summary, "grid_world": try_write_grid(out, summary.get("dataset", "map"), trajectory, cloud,
-                                                           objects or [])}
+        summary = {
+            **summary,
+            "grid_world": try_write_grid(out, summary.get("dataset", "map"), trajectory, cloud, objects or []),
+        }
     atomic_write(out / "trajectory.tum", tum_text(trajectory))
     atomic_write(out / "odometry.tum", tum_text(odometry))
     atomic_write(out / "objects.json", json.dumps(objects or [], indent=1))
@@ -89,11 +97,16 @@ def report_markdown(summary: dict[str, Any]) -> str:
 
 def ate_table(ate: dict[str, dict[str, Any]]) -> list[str]:
     """Markdown rows of ATE / RPE per trajectory (``error_dict`` entries): report.md and ``objslam eval``."""
-    lines = ["| trajectory | pairs | ATE RMSE (m) | ATE median (m) | ATE max (m) | RPE trans RMSE (m/frame) "
-             "| RPE rot RMSE (deg/frame) |", "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| trajectory | pairs | ATE RMSE (m) | ATE median (m) | ATE max (m) | RPE trans RMSE (m/frame) "
+        "| RPE rot RMSE (deg/frame) |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for name, e in ate.items():
-        lines.append(f"| {name} | {e['pairs']} | {e['ate_rmse_m']:.4f} | {e['ate_median_m']:.4f} | "
-                     f"{e['ate_max_m']:.4f} | {e['rpe_trans_rmse_m']:.5f} | {e['rpe_rot_rmse_deg']:.4f} |")
+        lines.append(
+            f"| {name} | {e['pairs']} | {e['ate_rmse_m']:.4f} | {e['ate_median_m']:.4f} | "
+            f"{e['ate_max_m']:.4f} | {e['rpe_trans_rmse_m']:.5f} | {e['rpe_rot_rmse_deg']:.4f} |"
+        )
     return lines
 
 

@@ -39,13 +39,18 @@ TABLE = struct.Struct("<QQ")
 FORMAT = 1
 _NAME = re.compile(r"^snapshot-(\d{8,})\.bin$")
 _OWN_PACKAGES = ("perception.", "graph.", "service.", "slam.", "loops.", "rl.", "sources.")
-MOVED = {"service.pipeline": "slam.core", "service.loop_closure": "loops.closer",
-         "perception.place_recognition": "loops.place_recognition"}
+MOVED = {
+    "service.pipeline": "slam.core",
+    "service.loop_closure": "loops.closer",
+    "perception.place_recognition": "loops.place_recognition",
+}
 """Modules whose dataclasses snapshots of earlier releases name (release 0.1.0 -> now)."""
-_ALLOWED = {("builtins", n) for n in ("set", "frozenset", "complex", "slice", "bytearray")} | {
-    ("collections", "Counter"), ("collections", "OrderedDict"), ("numpy", "dtype"), ("numpy", "ndarray")} | {
-    (m, n) for m in ("numpy.core.multiarray", "numpy._core.multiarray") for n in ("_reconstruct", "scalar")} | {
-    (m, "_frombuffer") for m in ("numpy.core.numeric", "numpy._core.numeric")}
+_ALLOWED = (
+    {("builtins", n) for n in ("set", "frozenset", "complex", "slice", "bytearray")}
+    | {("collections", "Counter"), ("collections", "OrderedDict"), ("numpy", "dtype"), ("numpy", "ndarray")}
+    | {(m, n) for m in ("numpy.core.multiarray", "numpy._core.multiarray") for n in ("_reconstruct", "scalar")}
+    | {(m, "_frombuffer") for m in ("numpy.core.numeric", "numpy._core.numeric")}
+)
 
 
 class SnapshotError(Exception):
@@ -94,10 +99,10 @@ def decode(payload: bytes | bytearray | memoryview) -> dict[str, Any]:
     except struct.error as exc:
         raise SnapshotError(f"unreadable buffer table: {exc}") from exc
     offset = TABLE.size + 8 * n_buffers + n_stream
-    stream = view[offset - n_stream:offset]
+    stream = view[offset - n_stream : offset]
     buffers = []
     for size in sizes:
-        buffers.append(view[offset:offset + size])
+        buffers.append(view[offset : offset + size])
         offset += size
     if offset != len(view):
         raise SnapshotError("payload length does not match its buffer table")
@@ -133,7 +138,7 @@ def unseal(data: bytes | bytearray) -> memoryview:
     magic, length, digest = HEADER.unpack_from(data)
     if magic != MAGIC:
         raise SnapshotError("not a snapshot (bad magic)")
-    payload = memoryview(data)[HEADER.size:]
+    payload = memoryview(data)[HEADER.size :]
     if len(payload) != length:
         raise SnapshotError(f"truncated: {len(payload)} of {length} payload bytes")
     if hashlib.sha256(payload).digest() != digest:
@@ -187,7 +192,7 @@ class SnapshotStore:
             Path(tmp).unlink(missing_ok=True)
             raise
         _fsync_dir(self.directory)
-        for old in (existing + [path])[:-self.keep]:
+        for old in (existing + [path])[: -self.keep]:
             old.unlink(missing_ok=True)
         return Written(path, HEADER.size + sum(p.nbytes for p in payload), time.perf_counter() - t0)
 
@@ -229,8 +234,10 @@ class Persistence:
         """
         for path, snap in self.store.candidates(self.skipped):
             if snap.get("robot", self.robot) != self.robot:
-                raise ConfigError(f"state dir {self.directory} holds the map of robot {snap['robot']!r}, "
-                                  f"not {self.robot!r}: give each robot its own --state-dir")
+                raise ConfigError(
+                    f"state dir {self.directory} holds the map of robot {snap['robot']!r}, "
+                    f"not {self.robot!r}: give each robot its own --state-dir"
+                )
             try:
                 restore(snap["state"])
             except Exception as exc:  # e.g. a snapshot of an incompatible version: fall back, never crash
@@ -238,8 +245,12 @@ class Persistence:
                 self.skipped.append((path.name, f"cannot be restored: {exc!r}"))
                 continue
             self._saved = (snap["keyframes"], snap["frames_processed"])
-            self.resumed_from = {"file": path.name, "keyframes": snap["keyframes"],
-                                 "frames_processed": snap["frames_processed"], "created": snap["created"]}
+            self.resumed_from = {
+                "file": path.name,
+                "keyframes": snap["keyframes"],
+                "frames_processed": snap["frames_processed"],
+                "created": snap["created"],
+            }
             log.info("resumed from %s: %d keyframes, %d frames processed", path.name, *self._saved)
             return True
         if self.skipped:
@@ -256,8 +267,15 @@ class Persistence:
 
     def capture(self, keyframes: int, frames: int, state: dict[str, Any]) -> list[memoryview]:
         """The payload of a snapshot of ``state``; it shares memory with ``state``: save it before that changes."""
-        return encode({"robot": self.robot, "created": time.time(), "keyframes": keyframes,
-                       "frames_processed": frames, "state": state})
+        return encode(
+            {
+                "robot": self.robot,
+                "created": time.time(),
+                "keyframes": keyframes,
+                "frames_processed": frames,
+                "state": state,
+            }
+        )
 
     def save(self, payload: list[memoryview], keyframes: int, frames: int, capture_s: float = 0.0) -> Written | None:
         """Write a captured payload; a failed write is logged and counted (the service keeps mapping)."""
@@ -269,19 +287,35 @@ class Persistence:
             return None
         self.written += 1
         self._saved = (keyframes, frames)
-        self.last = {"file": written.path.name, "keyframes": keyframes, "frames_processed": frames,
-                     "bytes": written.size, "capture_ms": round(capture_s * 1e3, 3),
-                     "write_ms": round(written.write_s * 1e3, 3)}
-        log.info("snapshot %s: %d keyframes, %.1f MB, capture %.0f ms, write %.0f ms", written.path.name, keyframes,
-                 written.size / 1e6, capture_s * 1e3, written.write_s * 1e3)
+        self.last = {
+            "file": written.path.name,
+            "keyframes": keyframes,
+            "frames_processed": frames,
+            "bytes": written.size,
+            "capture_ms": round(capture_s * 1e3, 3),
+            "write_ms": round(written.write_s * 1e3, 3),
+        }
+        log.info(
+            "snapshot %s: %d keyframes, %.1f MB, capture %.0f ms, write %.0f ms",
+            written.path.name,
+            keyframes,
+            written.size / 1e6,
+            capture_s * 1e3,
+            written.write_s * 1e3,
+        )
         return written
 
     def status(self) -> dict[str, Any]:
         """The ``persistence`` object of the status reply (docs/protocol.md)."""
-        return {"state_dir": str(self.directory), "every_keyframes": self.every_keyframes,
-                "snapshots_written": self.written, "failed_writes": self.failed, "last_snapshot": self.last,
-                "resumed_from": self.resumed_from,
-                "skipped_snapshots": [{"file": f, "reason": r} for f, r in self.skipped]}
+        return {
+            "state_dir": str(self.directory),
+            "every_keyframes": self.every_keyframes,
+            "snapshots_written": self.written,
+            "failed_writes": self.failed,
+            "last_snapshot": self.last,
+            "resumed_from": self.resumed_from,
+            "skipped_snapshots": [{"file": f, "reason": r} for f, r in self.skipped],
+        }
 
 
 def _read(path: Path) -> bytearray:

@@ -17,7 +17,6 @@ import json
 import math
 import struct
 from dataclasses import dataclass
-from enum import Enum
 from typing import Any
 
 import cv2
@@ -58,13 +57,17 @@ def encode_frame(frame: Frame, color_encoding: str = "jpeg", depth_encoding: str
         "seq": frame.seq,
         "frame_id": frame.frame_id,
         "camera": camera_to_json(frame.camera),
-        "color": {"encoding": color_encoding, "width": frame.rgb.shape[1], "height": frame.rgb.shape[0],
-                  "size": len(color)},
+        "color": {
+            "encoding": color_encoding,
+            "width": frame.rgb.shape[1],
+            "height": frame.rgb.shape[0],
+            "size": len(color),
+        },
         "depth": {"encoding": depth_encoding, "width": w, "height": h, "size": len(depth)},
         "odometry": None if frame.odometry is None else [float(v) for v in pose_to_tum(frame.odometry)],
-        "detections": None if frame.detections is None else [
-            {"label": d.label, "score": float(d.score), "box": [float(v) for v in d.box]} for d in frame.detections
-        ],
+        "detections": None
+        if frame.detections is None
+        else [{"label": d.label, "score": float(d.score), "box": [float(v) for v in d.box]} for d in frame.detections],
     }
     head = json.dumps(header, separators=(",", ":")).encode()
     return PREAMBLE.pack(MAGIC, VERSION, 0, len(head)) + head + color + depth
@@ -73,8 +76,15 @@ def encode_frame(frame: Frame, color_encoding: str = "jpeg", depth_encoding: str
 def camera_to_json(camera: CameraModel) -> dict[str, Any]:
     """The ``camera`` header object."""
     c = camera.color
-    out: dict[str, Any] = {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": camera.width,
-                           "height": camera.height, "depth_scale": camera.depth_scale}
+    out: dict[str, Any] = {
+        "fx": c.fx,
+        "fy": c.fy,
+        "cx": c.cx,
+        "cy": c.cy,
+        "width": camera.width,
+        "height": camera.height,
+        "depth_scale": camera.depth_scale,
+    }
     if camera.depth_intrinsics is not None:
         d = camera.depth_intrinsics
         out["depth_K"] = {"fx": d.fx, "fy": d.fy, "cx": d.cx, "cy": d.cy}
@@ -115,14 +125,16 @@ def decode_frame(payload: bytes, limits: Limits = Limits()) -> Frame:
     color_meta = _parse_image_meta(_field(header, "color", dict), COLOR_ENCODINGS, "color", limits)
     depth_meta = _parse_image_meta(_field(header, "depth", dict), DEPTH_ENCODINGS, "depth", limits)
     if len(body) != color_meta["size"] + depth_meta["size"]:
-        raise FrameRejected(Reason.SIZE_MISMATCH,
-                            f"body has {len(body)} bytes, header declares {color_meta['size'] + depth_meta['size']}")
+        raise FrameRejected(
+            Reason.SIZE_MISMATCH,
+            f"body has {len(body)} bytes, header declares {color_meta['size'] + depth_meta['size']}",
+        )
     if (depth_meta["width"], depth_meta["height"]) != (camera.width, camera.height) and camera.registered:
         raise FrameRejected(Reason.SIZE_MISMATCH, "registered depth must match the camera image size")
     if (color_meta["width"], color_meta["height"]) != (camera.width, camera.height):
         raise FrameRejected(Reason.SIZE_MISMATCH, "colour size differs from camera width/height")
     rgb = _decode_color(body[: color_meta["size"]], color_meta)
-    depth = _decode_depth(body[color_meta["size"]:], depth_meta)
+    depth = _decode_depth(body[color_meta["size"] :], depth_meta)
     return Frame(
         timestamp=_finite(_field(header, "timestamp", (int, float)), "timestamp"),
         seq=_nonnegative_int(header.get("seq", 0), "seq"),
@@ -149,14 +161,14 @@ def split_message(payload: bytes) -> tuple[dict[str, Any], bytes]:
     if len(payload) < PREAMBLE.size + hlen:
         raise FrameRejected(Reason.TRUNCATED, "payload ends inside the header")
     try:
-        header = json.loads(payload[PREAMBLE.size: PREAMBLE.size + hlen].decode("utf-8"), parse_int=_json_int)
+        header = json.loads(payload[PREAMBLE.size : PREAMBLE.size + hlen].decode("utf-8"), parse_int=_json_int)
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
         raise FrameRejected(Reason.BAD_HEADER, f"header is not UTF-8 JSON: {exc}") from None
     if not isinstance(header, dict):
         raise FrameRejected(Reason.BAD_HEADER, "header is not a JSON object")
     if header.get("version") != VERSION:
         raise FrameRejected(Reason.UNSUPPORTED_VERSION, f"header version {header.get('version')!r}")
-    return header, payload[PREAMBLE.size + hlen:]
+    return header, payload[PREAMBLE.size + hlen :]
 
 
 def _json_int(text: str) -> int:
@@ -215,7 +227,7 @@ def _parse_intrinsics(obj: Any, width: int, height: int) -> Intrinsics:
 def _parse_camera(obj: dict[str, Any], limits: Limits) -> CameraModel:
     width = _field(obj, "width", int)
     height = _field(obj, "height", int)
-    if not (0 < width and 0 < height and width * height <= limits.max_image_pixels):
+    if not (width > 0 and height > 0 and width * height <= limits.max_image_pixels):
         raise FrameRejected(Reason.BAD_INTRINSICS, f"image size {width}x{height} out of range")
     color = _parse_intrinsics(obj, width, height)
     scale = obj.get("depth_scale")
@@ -310,8 +322,10 @@ def _parse_detections(value: Any, camera: CameraModel) -> list[Detection] | None
 
 
 def _parse_box(box: Any, i: int, camera: CameraModel) -> tuple[float, float, float, float]:
-    if not isinstance(box, list) or len(box) != 4 or not all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in box
+    if (
+        not isinstance(box, list)
+        or len(box) != 4
+        or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in box)
     ):
         raise FrameRejected(Reason.BAD_DETECTIONS, f"detection {i}: box must be 4 finite numbers")
     x1, y1, x2, y2 = (float(v) for v in box)

@@ -29,9 +29,16 @@ class ReplayResult:
 class Replayer:
     """Publishes dataset frames paced by their timestamps (default), a fixed rate, or as fast as possible."""
 
-    def __init__(self, dataset: Dataset, publish: Callable[[bytes], None], rate_hz: float | None = None,
-                 max_rate: bool = False, max_frames: int | None = None,
-                 before_publish: Callable[[], None] | None = None, progress: bool = True):
+    def __init__(
+        self,
+        dataset: Dataset,
+        publish: Callable[[bytes], None],
+        rate_hz: float | None = None,
+        max_rate: bool = False,
+        max_frames: int | None = None,
+        before_publish: Callable[[], None] | None = None,
+        progress: bool = True,
+    ):
         if rate_hz is not None and rate_hz <= 0:
             raise ValueError("--rate must be positive")
         self.dataset = dataset
@@ -46,8 +53,13 @@ class Replayer:
         """Publish every frame; returns how many and how long it took."""
         start = time.monotonic()
         t0 = None
-        bar = tqdm(total=self.count, desc=f"replay {self.dataset.name}", unit="frame",
-                   disable=None if self.progress else True, mininterval=1.0)
+        bar = tqdm(
+            total=self.count,
+            desc=f"replay {self.dataset.name}",
+            unit="frame",
+            disable=None if self.progress else True,
+            mininterval=1.0,
+        )
         for i in range(self.count):
             frame = self.dataset.frame(i)
             payload = encode_frame(frame)
@@ -71,8 +83,9 @@ class Replayer:
 
 def frame_publisher(session: zenoh.Session, key: str, wait_for_subscriber_s: float = 5.0) -> zenoh.Publisher:
     """A reliable, blocking publisher on ``key``; waits briefly for a subscriber so no frame is lost at start."""
-    pub = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK,
-                                    reliability=zenoh.Reliability.RELIABLE)
+    pub = session.declare_publisher(
+        key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE
+    )
     deadline = time.monotonic() + wait_for_subscriber_s
     while not pub.matching_status.matching and time.monotonic() < deadline:
         time.sleep(0.02)

@@ -13,14 +13,20 @@ from service.config import Settings
 from service.node import ServiceNode
 from service.outputs import run_summary, write_outputs
 from service.replay import Replayer, frame_publisher
-from sources import Dataset, open_dataset
 from service.zenoh_session import open_session
+from sources import Dataset, open_dataset
 
 log = logging.getLogger(__name__)
 
 
-def run_dataset(spec: str | Dataset, out: Path, settings: Settings, max_frames: int | None = None,
-                camera_overrides: dict[str, float] | None = None, progress: bool = True) -> dict[str, Any]:
+def run_dataset(
+    spec: str | Dataset,
+    out: Path,
+    settings: Settings,
+    max_frames: int | None = None,
+    camera_overrides: dict[str, float] | None = None,
+    progress: bool = True,
+) -> dict[str, Any]:
     """Replay ``spec`` into a service on one embedded zenoh session and write the outputs into ``out``.
 
     The same ServiceNode as ``serve`` receives the frames through a zenoh subscriber. Zenoh delivers to the
@@ -44,8 +50,9 @@ def run_dataset(spec: str | Dataset, out: Path, settings: Settings, max_frames: 
                 log.warning("the service completed no frame for 60 s; publishing anyway")
             published += 1
 
-        replayer = Replayer(dataset, pub.put, max_rate=True, max_frames=max_frames, before_publish=back_pressure,
-                            progress=progress)
+        replayer = Replayer(
+            dataset, pub.put, max_rate=True, max_frames=max_frames, before_publish=back_pressure, progress=progress
+        )
         started = time.monotonic()
         result = replayer.run()
         if not node.wait_done(result.frames, timeout=120.0):
@@ -57,8 +64,9 @@ def run_dataset(spec: str | Dataset, out: Path, settings: Settings, max_frames: 
         summary = run_summary(dataset.name, result.frames, elapsed, status)
         traj, odom = node.trajectories()
         objects = node.objects_reply()["objects"]
-        return write_outputs(out, traj, odom, summary, dataset.ground_truth, objects, node.loops_reply()["loops"],
-                             node.pipeline.cloud())
+        return write_outputs(
+            out, traj, odom, summary, dataset.ground_truth, objects, node.loops_reply()["loops"], node.pipeline.cloud()
+        )
     finally:
         node.stop()
         session.close()

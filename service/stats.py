@@ -14,8 +14,13 @@ def summarize(seconds: np.ndarray) -> dict[str, float | int]:
         return {"n": 0}
     arr = seconds * 1e3
     p50, p95, p99 = np.percentile(arr, [50, 95, 99])
-    return {"n": len(arr), "p50_ms": round(float(p50), 3), "p95_ms": round(float(p95), 3),
-            "p99_ms": round(float(p99), 3), "max_ms": round(float(arr.max()), 3)}
+    return {
+        "n": len(arr),
+        "p50_ms": round(float(p50), 3),
+        "p95_ms": round(float(p95), 3),
+        "p99_ms": round(float(p99), 3),
+        "max_ms": round(float(arr.max()), 3),
+    }
 
 
 class LatencyWindow:
@@ -70,8 +75,12 @@ class ServiceStats:
     def counters(self) -> dict:
         """The frame counters as plain data (kept in snapshots; latencies are not)."""
         with self._lock:
-            return {"received": self.received, "processed": self.processed, "rejected": dict(self.rejected),
-                    "errors": dict(self.errors)}
+            return {
+                "received": self.received,
+                "processed": self.processed,
+                "rejected": dict(self.rejected),
+                "errors": dict(self.errors),
+            }
 
     def restore_counters(self, counters: dict) -> None:
         with self._lock:

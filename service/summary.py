@@ -20,8 +20,11 @@ def print_summary(console: Console, summary: dict[str, Any], out: Path) -> None:
         ("frames dropped", summary["frames_dropped"]),
         ("keyframes (poses in graph)", summary["keyframes"]),
         ("objects by class", json.dumps(summary["objects_by_class"]) if summary["objects_by_class"] else "none"),
-        ("keyframe detections by class", json.dumps(dict(sorted(
-            summary.get("keyframe_detections_by_class", {}).items(), key=lambda kv: -kv[1])[:8])) or "none"),
+        (
+            "keyframe detections by class",
+            json.dumps(dict(sorted(summary.get("keyframe_detections_by_class", {}).items(), key=lambda kv: -kv[1])[:8]))
+            or "none",
+        ),
         ("loop closures accepted", summary["loop_closures"]),
     ]
     for name, err in summary.get("ate", {}).items():

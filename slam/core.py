@@ -19,18 +19,17 @@ from pydantic import BaseModel
 
 from graph.object_landmarks import LandmarkConfig, ObjectLandmarks
 from graph.pose_graph import NoiseSettings
+from graph.trajectory import Trajectory
 from graph.window import WindowedGraph, WindowSettings
+from loops.closer import KeyframeEntry, LoopCloser, LoopConfig, Verified
 from perception.clustering import ObjectEllipsoid
-from perception.frame import CameraModel, Detection, Frame
+from perception.frame import CameraModel, Detection, Frame, FrameRejected, Reason
 from perception.frontend import ExternalOdometry, KeyframePolicy, Step, VisualOdometry
 from perception.object_map import ObjectMapper, object_json
 from perception.odometry import FeatureExtractor, OdometryConfig, RelativePoseEstimator
 from perception.registration import backproject, depth_in_color
 from rl.proposer import PolicyProposer
 from service.config import Settings
-from loops.closer import KeyframeEntry, LoopCloser, LoopConfig, Verified
-from perception.frame import FrameRejected, Reason
-from graph.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
@@ -131,15 +130,18 @@ class Pipeline:
         # (status p99 under overload 125-140 ms with three, 93 ms with one). The detector has a thread of its
         # own: onnxruntime releases the GIL, so detecting keyframe k+1 overlaps associating keyframe k
         # (keyframe mapping on 7-Scenes 12.2 keyframes/s instead of 9.7-10.9, `bench stages`).
-        self._mapping: Executor = ThreadPoolExecutor(1, thread_name_prefix="objslam-mapping") if background \
-            else InlineExecutor()
-        self._detecting: Executor = ThreadPoolExecutor(1, thread_name_prefix="objslam-detector") if background \
-            else self._mapping
+        self._mapping: Executor = (
+            ThreadPoolExecutor(1, thread_name_prefix="objslam-mapping") if background else InlineExecutor()
+        )
+        self._detecting: Executor = (
+            ThreadPoolExecutor(1, thread_name_prefix="objslam-detector") if background else self._mapping
+        )
         self._pending: deque[dict[str, Future]] = deque()  # per keyframe, oldest first: its unapplied mapping jobs
         self._objects_view: list = []  # the objects as of the last applied mapping (read by object_list)
         self.mapping_errors = 0
-        self.graph = WindowedGraph(from_settings(NoiseSettings, settings.graph),
-                                   from_settings(WindowSettings, settings.graph))
+        self.graph = WindowedGraph(
+            from_settings(NoiseSettings, settings.graph), from_settings(WindowSettings, settings.graph)
+        )
         self.policy = from_settings(KeyframePolicy, settings.keyframes, settings.odometry)
         self.odometry_config = from_settings(OdometryConfig, settings.odometry)
         self.frontend: ExternalOdometry | VisualOdometry | None = None
@@ -157,8 +159,11 @@ class Pipeline:
         self.detections_by_class: Counter[str] = Counter()
         self.objects = ObjectMapper() if settings.objects.enabled else None
         self.object_map_version = 0
-        self.landmarks = ObjectLandmarks(self.graph, from_settings(LandmarkConfig, settings.objects)) \
-            if settings.objects.enabled and settings.objects.landmarks else None
+        self.landmarks = (
+            ObjectLandmarks(self.graph, from_settings(LandmarkConfig, settings.objects))
+            if settings.objects.enabled and settings.objects.landmarks
+            else None
+        )
         self._object_poses: list[np.ndarray] = []  # per keyframe: the pose its object observations were placed with
         self.reposes = 0
 
@@ -179,8 +184,9 @@ class Pipeline:
             record = self._add_keyframe(frame, step)
         else:
             kf = len(self._kf_odometry) - 1
-            record = FrameRecord(frame.timestamp, frame.seq, kf, False, step.pose,
-                                 np.linalg.inv(self._kf_odometry[kf]) @ step.pose)
+            record = FrameRecord(
+                frame.timestamp, frame.seq, kf, False, step.pose, np.linalg.inv(self._kf_odometry[kf]) @ step.pose
+            )
         self.records.append(record)
         return record
 
@@ -198,8 +204,9 @@ class Pipeline:
             self.frontend = VisualOdometry(camera, self.policy, self.odometry_config)
         lc = self.settings.loops
         if lc.source != "off":
-            self.loops = LoopCloser(self.graph, RelativePoseEstimator(camera, self.odometry_config),
-                                    from_settings(LoopConfig, lc))
+            self.loops = LoopCloser(
+                self.graph, RelativePoseEstimator(camera, self.odometry_config), from_settings(LoopConfig, lc)
+            )
             self._extractor = FeatureExtractor(camera, self.odometry_config)
         if lc.source in ("policy", "both"):
             self.proposer = load_proposer(lc.policy, lc.policy_radius, lc.policy_candidates)
@@ -213,8 +220,13 @@ class Pipeline:
             raise FrameRejected(Reason.EMPTY_DEPTH, "depth image has no valid pixel")
         if isinstance(self.frontend, ExternalOdometry) and frame.odometry is None:
             raise FrameRejected(Reason.NO_ODOMETRY, "this stream carries odometry but the frame has none")
-        if isinstance(self.frontend, ExternalOdometry) and self.records and self.policy.implausible(
-                self.records[-1].odometry, frame.odometry, frame.timestamp - self.last_timestamp):
+        if (
+            isinstance(self.frontend, ExternalOdometry)
+            and self.records
+            and self.policy.implausible(
+                self.records[-1].odometry, frame.odometry, frame.timestamp - self.last_timestamp
+            )
+        ):
             raise FrameRejected(Reason.ODOMETRY_JUMP, "odometry jumped implausibly far since the last frame")
 
     def _add_keyframe(self, frame: Frame, step: Step) -> FrameRecord:
@@ -248,8 +260,10 @@ class Pipeline:
         if not self._kf_points:
             return np.zeros((0, 3), np.float32)
         poses = self.graph.poses()
-        parts = [pts @ poses[k][:3, :3].T.astype(np.float32) + poses[k][:3, 3].astype(np.float32)
-                 for k, pts in enumerate(self._kf_points[:len(poses)])]
+        parts = [
+            pts @ poses[k][:3, :3].T.astype(np.float32) + poses[k][:3, 3].astype(np.float32)
+            for k, pts in enumerate(self._kf_points[: len(poses)])
+        ]
         return np.concatenate(parts)
 
     # ------------------------------------------------------------ keyframe mapping (objects, loop closure)
@@ -271,8 +285,7 @@ class Pipeline:
         if self.objects is not None:
             self._object_poses.append(body)
         jobs: dict[str, Future] = {}
-        jobs["objects"] = self._mapping.submit(
-            self._map_objects, kf, frame, detections, body, color_from_body, reposed)
+        jobs["objects"] = self._mapping.submit(self._map_objects, kf, frame, detections, body, color_from_body, reposed)
         if self.loops is not None:
             entry = KeyframeEntry(kf, frame.timestamp, frame.seq, step.features)
             poses = self.graph.poses() if self.loops.config.proximity else None
@@ -284,8 +297,15 @@ class Pipeline:
         detections = self._get_detector().detect(rgb)
         return detections, {"detector": time.perf_counter() - t0}
 
-    def _map_objects(self, kf: int, frame: Frame, detections: Future, body: np.ndarray,
-                     color_from_body: np.ndarray, reposed: np.ndarray | None) -> KeyframeObjects:
+    def _map_objects(
+        self,
+        kf: int,
+        frame: Frame,
+        detections: Future,
+        body: np.ndarray,
+        color_from_body: np.ndarray,
+        reposed: np.ndarray | None,
+    ) -> KeyframeObjects:
         """Associate the keyframe's detections, extend tracks and re-cluster objects (Sec. 2.4, SPEC 6.2-6.7).
 
         On the mapping thread; touches nothing but the object mapper. ``reposed``: new poses of the earlier
@@ -304,17 +324,18 @@ class Pipeline:
         t0 = time.perf_counter()
         camera = frame.camera
         depth = depth_in_color(frame.depth_m(), camera, scale=2)
-        result.reclustered = self.objects.add_keyframe(kf, found, depth, camera.color.matrix(),
-                                                       body @ color_from_body)
+        result.reclustered = self.objects.add_keyframe(kf, found, depth, camera.color.matrix(), body @ color_from_body)
         to_body = np.linalg.inv(color_from_body)
-        result.observations = [(t, to_body[:3, :3] @ p + to_body[:3, 3], extent)
-                               for t, p, extent in self.objects.last_observations]
+        result.observations = [
+            (t, to_body[:3, :3] @ p + to_body[:3, 3], extent) for t, p, extent in self.objects.last_observations
+        ]
         result.objects = list(self.objects.objects)  # the mapper may be on a later keyframe when this is applied
         result.timings["objects"] = time.perf_counter() - t0
         return result
 
-    def _verify_loops(self, entry: KeyframeEntry, frame: Frame, proposed: list[tuple[int, str, float]],
-                      poses: np.ndarray | None) -> tuple[list[Verified], dict[str, float]]:
+    def _verify_loops(
+        self, entry: KeyframeEntry, frame: Frame, proposed: list[tuple[int, str, float]], poses: np.ndarray | None
+    ) -> tuple[list[Verified], dict[str, float]]:
         """Loop-closure candidates of a keyframe, verified geometrically (on the mapping thread, no graph)."""
         t0 = time.perf_counter()
         if entry.features is None:
@@ -476,11 +497,14 @@ class Pipeline:
             "external_odometry": isinstance(self.frontend, ExternalOdometry),
             "frontend": None if self.frontend is None else self.frontend.state(),
             "graph": self.graph.state(),
-            "records": {"timestamp": np.array([x.timestamp for x in r]), "seq": np.array([x.seq for x in r], np.int64),
-                        "keyframe": np.array([x.keyframe for x in r], np.int64),
-                        "is_keyframe": np.array([x.is_keyframe for x in r], bool),
-                        "odometry": np.array([x.odometry for x in r]).reshape(-1, 4, 4),
-                        "from_keyframe": np.array([x.from_keyframe for x in r]).reshape(-1, 4, 4)},
+            "records": {
+                "timestamp": np.array([x.timestamp for x in r]),
+                "seq": np.array([x.seq for x in r], np.int64),
+                "keyframe": np.array([x.keyframe for x in r], np.int64),
+                "is_keyframe": np.array([x.is_keyframe for x in r], bool),
+                "odometry": np.array([x.odometry for x in r]).reshape(-1, 4, 4),
+                "from_keyframe": np.array([x.from_keyframe for x in r]).reshape(-1, 4, 4),
+            },
             "kf_odometry": np.array(self._kf_odometry).reshape(-1, 4, 4),
             "kf_points": self._kf_points,
             "tracking_lost": self.tracking_lost,
@@ -508,8 +532,12 @@ class Pipeline:
             if p.proposer is not None and state.get("proposer") is not None:
                 p.proposer.restore(state["proposer"])
         r = state["records"]
-        p.records = [FrameRecord(float(t), int(s), int(k), bool(kf), odo, off) for t, s, k, kf, odo, off in zip(
-            r["timestamp"], r["seq"], r["keyframe"], r["is_keyframe"], r["odometry"], r["from_keyframe"])]
+        p.records = [
+            FrameRecord(float(t), int(s), int(k), bool(kf), odo, off)
+            for t, s, k, kf, odo, off in zip(
+                r["timestamp"], r["seq"], r["keyframe"], r["is_keyframe"], r["odometry"], r["from_keyframe"]
+            )
+        ]
         p._kf_odometry = list(state["kf_odometry"])
         p._kf_points = list(state.get("kf_points", []))
         p.tracking_lost = state["tracking_lost"]
@@ -522,7 +550,7 @@ class Pipeline:
             p.landmarks.graph = p.graph
             if state.get("landmarks") is not None:
                 p.landmarks.restore(state["landmarks"])
-        p._object_poses = list(state.get("object_poses", p.graph.poses()[:len(p.keyframe_detections)]))
+        p._object_poses = list(state.get("object_poses", p.graph.poses()[: len(p.keyframe_detections)]))
         p.reposes = state.get("reposes", 0)
         p.mapping_errors = state.get("mapping_errors", 0)
         if p.objects is not None:

@@ -44,9 +44,7 @@ def object_texture(rng: np.random.Generator, extent_m: float, colour: np.ndarray
     return cv2.GaussianBlur(img, (0, 0), 0.5)
 
 
-def _draw_shapes(
-    img: np.ndarray, rng: np.random.Generator, size_px: tuple[float, float], colours: np.ndarray
-) -> None:
+def _draw_shapes(img: np.ndarray, rng: np.random.Generator, size_px: tuple[float, float], colours: np.ndarray) -> None:
     """Draw one random rectangle, disc or line per row of ``colours`` (log-uniform sizes) onto ``img``."""
     h, w = img.shape[:2]
     count = len(colours)
@@ -216,9 +214,7 @@ class Renderer:
         sid[rect[0] : rect[1], rect[2] : rect[3]][hit] = k
         return True
 
-    def _paint(
-        self, surf: Surface, k: int, coeffs: np.ndarray, rect: tuple, sid: np.ndarray, rgb: np.ndarray
-    ) -> bool:
+    def _paint(self, surf: Surface, k: int, coeffs: np.ndarray, rect: tuple, sid: np.ndarray, rgb: np.ndarray) -> bool:
         """Warp the surface texture into the pixels of ``rect`` it owns; True when it owns any."""
         y0, y1, x0, x1 = rect
         mask = sid[y0:y1, x0:x1] == k

@@ -6,10 +6,9 @@ import json
 import logging
 from pathlib import Path
 
-from pydantic import BaseModel
-
 import cv2
 import numpy as np
+from pydantic import BaseModel
 
 from graph.geometry import pose_from_tum
 from graph.trajectory import nearest_timestamps
@@ -63,8 +62,12 @@ def read_trajectory(path: Path) -> Trajectory:
 class TumDataset(Dataset):
     """A TUM-layout directory: frames from associations.txt (or rgb.txt + depth.txt)."""
 
-    def __init__(self, root: Path, camera_overrides: dict[str, float] | None = None,
-                 camera_defaults: dict[str, float] | None = None):
+    def __init__(
+        self,
+        root: Path,
+        camera_overrides: dict[str, float] | None = None,
+        camera_defaults: dict[str, float] | None = None,
+    ):
         self.root = Path(root)
         if not self.root.is_dir():
             raise DatasetError(f"dataset directory not found: {self.root}")
@@ -119,8 +122,10 @@ class TumDataset(Dataset):
         if not path.is_file():
             return None
         items = _read_json(path)
-        return [ObjectTruth(int(o["id"]), str(o["label"]), tuple(o["center"]), tuple(o["size"]),
-                            float(o.get("yaw", 0.0))) for o in items]
+        return [
+            ObjectTruth(int(o["id"]), str(o["label"]), tuple(o["center"]), tuple(o["size"]), float(o.get("yaw", 0.0)))
+            for o in items
+        ]
 
     @property
     def loops(self) -> list[tuple[int, int]] | None:
@@ -143,8 +148,7 @@ class TumDataset(Dataset):
         if not (rgb_txt.is_file() and depth_txt.is_file()):
             raise DatasetError(f"{self.root} has neither associations.txt nor rgb.txt + depth.txt")
         rgb, depth = read_index(rgb_txt), read_index(depth_txt)
-        match = nearest_timestamps(np.array([t for t, _ in rgb]), np.array([t for t, _ in depth]),
-                                   MAX_TIME_DIFF_S)
+        match = nearest_timestamps(np.array([t for t, _ in rgb]), np.array([t for t, _ in depth]), MAX_TIME_DIFF_S)
         keep = [i for i, j in enumerate(match) if j >= 0]
         if not keep:
             raise DatasetError(f"{self.root}: no rgb frame has a depth frame within {MAX_TIME_DIFF_S} s")
@@ -168,8 +172,10 @@ class TumDataset(Dataset):
                 continue
             try:
                 row = json.loads(line)
-                dets = [Detection(str(d["label"]), float(d["score"]), tuple(float(v) for v in d["box"]))
-                        for d in row["detections"]]
+                dets = [
+                    Detection(str(d["label"]), float(d["score"]), tuple(float(v) for v in d["box"]))
+                    for d in row["detections"]
+                ]
                 times.append(float(row["t"]))
             except (ValueError, KeyError, TypeError) as exc:
                 raise DatasetError(f"{path}:{n}: bad detections line ({exc})") from None
@@ -190,15 +196,22 @@ def load_camera(root: Path, overrides: dict[str, float], defaults: dict[str, flo
         _report_ignored(overrides, {"depth_scale"}, root / "camera-intrinsics.txt")
         return _seven_scenes_camera(root / "camera-intrinsics.txt", overrides)
     values = {**TUM_DEFAULT, **(defaults or {}), **overrides}
-    return CameraModel(Intrinsics(values["fx"], values["fy"], values["cx"], values["cy"]),
-                       int(overrides.get("width", 640)), int(overrides.get("height", 480)), values["depth_scale"])
+    return CameraModel(
+        Intrinsics(values["fx"], values["fy"], values["cx"], values["cy"]),
+        int(overrides.get("width", 640)),
+        int(overrides.get("height", 480)),
+        values["depth_scale"],
+    )
 
 
 def _report_ignored(overrides: dict[str, float], used: set[str], path: Path) -> None:
     ignored = sorted(set(overrides) - used)
     if ignored:
-        log.warning("%s defines the camera: %s not applied (edit or write camera.json instead)", path,
-                    ", ".join("--" + k.replace("_", "-") for k in ignored))
+        log.warning(
+            "%s defines the camera: %s not applied (edit or write camera.json instead)",
+            path,
+            ", ".join("--" + k.replace("_", "-") for k in ignored),
+        )
 
 
 def _camera_from_json(obj: dict, path: Path) -> CameraModel:
@@ -209,8 +222,14 @@ def _camera_from_json(obj: dict, path: Path) -> CameraModel:
         extr = None if obj.get("depth_to_color") is None else np.asarray(obj["depth_to_color"], dtype=float)
         if extr is not None and extr.shape != (4, 4):
             raise ValueError("depth_to_color must be 4x4")
-        return CameraModel(color, int(obj.get("width", 640)), int(obj.get("height", 480)),
-                           float(obj.get("depth_scale", 5000.0)), depth, extr)
+        return CameraModel(
+            color,
+            int(obj.get("width", 640)),
+            int(obj.get("height", 480)),
+            float(obj.get("depth_scale", 5000.0)),
+            depth,
+            extr,
+        )
     except (KeyError, TypeError, ValueError) as exc:
         raise DatasetError(f"{path}: invalid camera.json ({exc})") from None
 

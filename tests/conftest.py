@@ -10,7 +10,6 @@ import pytest
 
 from graph.geometry import pose_from_tum
 from perception.frame import CameraModel, Detection, Frame, Intrinsics
-
 from service.cli import single_threaded_blas
 
 single_threaded_blas()  # as the objslam command does: tests run the pipeline as the service runs it
@@ -54,4 +53,5 @@ def router():
 
 
 requires_redkitchen = pytest.mark.skipif(
-    not REDKITCHEN.is_dir(), reason=f"real data not found at {REDKITCHEN} (../shared/data is absent)")
+    not REDKITCHEN.is_dir(), reason=f"real data not found at {REDKITCHEN} (../shared/data is absent)"
+)

@@ -21,16 +21,43 @@ from tests.conftest import make_frame
 PROCESSED = "processed"
 WIDTH, HEIGHT = 64, 48
 Message = tuple[bytes, str]
-CLASSES = ("good", "truncated", "random_bytes", "random_after_preamble", "byte_flips", "bad_magic",
-           "preamble_version", "header_version", "header_not_json", "header_not_object", "header_too_long",
-           "huge_integer", "missing_field", "unknown_encoding", "wrong_size", "image_too_large",
-           "undecodable_image", "bad_intrinsics", "bad_pose", "duplicate_timestamp", "out_of_order",
-           "zero_depth", "no_odometry", "absurd_box", "bad_detection", "clipped_huge_box", "empty_detections",
-           "resolution_change", "wild_odometry", "odometry_jump")
+CLASSES = (
+    "good",
+    "truncated",
+    "random_bytes",
+    "random_after_preamble",
+    "byte_flips",
+    "bad_magic",
+    "preamble_version",
+    "header_version",
+    "header_not_json",
+    "header_not_object",
+    "header_too_long",
+    "huge_integer",
+    "missing_field",
+    "unknown_encoding",
+    "wrong_size",
+    "image_too_large",
+    "undecodable_image",
+    "bad_intrinsics",
+    "bad_pose",
+    "duplicate_timestamp",
+    "out_of_order",
+    "zero_depth",
+    "no_odometry",
+    "absurd_box",
+    "bad_detection",
+    "clipped_huge_box",
+    "empty_detections",
+    "resolution_change",
+    "wild_odometry",
+    "odometry_jump",
+)
 
 
-def pack(header: dict | bytes, body: bytes, magic: bytes = MAGIC, version: int = VERSION,
-         hlen: int | None = None) -> bytes:
+def pack(
+    header: dict | bytes, body: bytes, magic: bytes = MAGIC, version: int = VERSION, hlen: int | None = None
+) -> bytes:
     """A message from a header (dict, or raw header bytes) and a body; preamble fields may be forged."""
     head = header if isinstance(header, bytes) else json.dumps(header).encode()
     return PREAMBLE.pack(magic, version, 0, len(head) if hlen is None else hlen) + head + body
@@ -43,8 +70,10 @@ class Storm:
         self.rng = np.random.default_rng(seed)
         self.t = 0.0  # timestamp of the last frame the service will have processed
         self.seq = 0
-        self._bases = [split_message(encode_frame(make_frame(seed=k, width=WIDTH, height=HEIGHT), "rgb8", "u16le"))
-                       for k in range(4)]
+        self._bases = [
+            split_message(encode_frame(make_frame(seed=k, width=WIDTH, height=HEIGHT), "rgb8", "u16le"))
+            for k in range(4)
+        ]
         small = make_frame(seed=9, width=WIDTH // 2, height=HEIGHT // 2)
         self._small = split_message(encode_frame(small, "rgb8", "u16le"))
         self.classes: dict[str, Callable[[], Message]] = {name: getattr(self, name) for name in CLASSES}
@@ -82,8 +111,13 @@ class Storm:
 
     def clipped_huge_box(self) -> Message:
         header, body = self.valid()
-        header["detections"] = [{"label": "tv", "score": 0.5, "box": self._pick(
-            [[-1e9, -1e9, 1e9, 1e9], [0, 0, 1e308, 1e308], [-5, -5, 30, 400]])}]
+        header["detections"] = [
+            {
+                "label": "tv",
+                "score": 0.5,
+                "box": self._pick([[-1e9, -1e9, 1e9, 1e9], [0, 0, 1e308, 1e308], [-5, -5, 30, 400]]),
+            }
+        ]
         return self._processed(header, body)
 
     def empty_detections(self) -> Message:
@@ -170,8 +204,14 @@ class Storm:
     def header_not_json(self) -> Message:
         header, body = self.valid()
         head = json.dumps(header).encode()
-        broken = self._pick([head[: int(self.rng.integers(1, len(head)))],  # a strict prefix of an object
-                             b"\xff\xfe" + head, head.replace(b":", b"=", 1), b"{" * 50_000])
+        broken = self._pick(
+            [
+                head[: int(self.rng.integers(1, len(head)))],  # a strict prefix of an object
+                b"\xff\xfe" + head,
+                head.replace(b":", b"=", 1),
+                b"{" * 50_000,
+            ]
+        )
         return pack(broken, body), Reason.BAD_HEADER.value
 
     def header_not_object(self) -> Message:
@@ -186,8 +226,14 @@ class Storm:
         header, body = self.valid()
         big = int(self.rng.integers(19, 400))
         value = 10**big
-        edit = self._pick([lambda: header.update(timestamp=value), lambda: header["camera"].update(fx=value),
-                           lambda: header.update(seq=value), lambda: header["odometry"].__setitem__(0, -value)])
+        edit = self._pick(
+            [
+                lambda: header.update(timestamp=value),
+                lambda: header["camera"].update(fx=value),
+                lambda: header.update(seq=value),
+                lambda: header["odometry"].__setitem__(0, -value),
+            ]
+        )
         edit()
         return pack(header, body), Reason.BAD_HEADER.value
 
@@ -242,21 +288,46 @@ class Storm:
 
     def bad_intrinsics(self) -> Message:
         header, body = self.valid()
-        name, value = self._pick([("fx", math.nan), ("fy", math.inf), ("cx", -math.inf), ("fx", 0.0), ("fy", -50.0),
-                                  ("fx", 1e12), ("cx", 1e6), ("cy", -1e6), ("depth_scale", 0.0),
-                                  ("depth_scale", math.nan), ("depth_scale", -1000.0), ("width", 0), ("height", -48),
-                                  ("fx", "50"), ("fy", None), ("depth_scale", True)])
+        name, value = self._pick(
+            [
+                ("fx", math.nan),
+                ("fy", math.inf),
+                ("cx", -math.inf),
+                ("fx", 0.0),
+                ("fy", -50.0),
+                ("fx", 1e12),
+                ("cx", 1e6),
+                ("cy", -1e6),
+                ("depth_scale", 0.0),
+                ("depth_scale", math.nan),
+                ("depth_scale", -1000.0),
+                ("width", 0),
+                ("height", -48),
+                ("fx", "50"),
+                ("fy", None),
+                ("depth_scale", True),
+            ]
+        )
         header["camera"][name] = value
         return pack(header, body), Reason.BAD_INTRINSICS.value
 
     def bad_pose(self) -> Message:
         header, body = self.valid()
         odometry = header["odometry"]
-        header["odometry"] = self._pick([
-            [math.nan, *odometry[1:]], [*odometry[:3], math.inf, 0.0, 0.0, 1.0], odometry[:6], odometry + [1.0],
-            [*odometry[:6], 2.0], [*odometry[:3], 0.0, 0.0, 0.0, 0.0], [1e9, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
-            "identity", {"x": 0}, [*odometry[:6], True],
-        ])
+        header["odometry"] = self._pick(
+            [
+                [math.nan, *odometry[1:]],
+                [*odometry[:3], math.inf, 0.0, 0.0, 1.0],
+                odometry[:6],
+                odometry + [1.0],
+                [*odometry[:6], 2.0],
+                [*odometry[:3], 0.0, 0.0, 0.0, 0.0],
+                [1e9, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],
+                "identity",
+                {"x": 0},
+                [*odometry[:6], True],
+            ]
+        )
         return pack(header, body), Reason.BAD_POSE.value
 
     # ------------------------------------------------------------ stream state
@@ -286,18 +357,39 @@ class Storm:
 
     def absurd_box(self) -> Message:
         header, body = self.valid()
-        box = self._pick([[math.nan, 0, 10, 10], [0, 0, math.inf, 10], [-100, -100, -10, -10],  # NaN, inf, outside
-                          [20, 20, 10, 10], [5, 5, 5, 30], [1e9, 1e9, 2e9, 2e9], [0, 0, 0.5, 0.5],  # inverted, empty
-                          [1, 2, 3], "box", [1, 2, 3, "4"], None])
+        box = self._pick(
+            [
+                [math.nan, 0, 10, 10],
+                [0, 0, math.inf, 10],
+                [-100, -100, -10, -10],  # NaN, inf, outside
+                [20, 20, 10, 10],
+                [5, 5, 5, 30],
+                [1e9, 1e9, 2e9, 2e9],
+                [0, 0, 0.5, 0.5],  # inverted, empty
+                [1, 2, 3],
+                "box",
+                [1, 2, 3, "4"],
+                None,
+            ]
+        )
         header["detections"] = [{"label": "cup", "score": 0.9, "box": box}]
         return pack(header, body), Reason.BAD_DETECTIONS.value
 
     def bad_detection(self) -> Message:
         header, body = self.valid()
         good = {"label": "cup", "score": 0.9, "box": [5, 6, 20, 30]}
-        header["detections"] = self._pick([
-            [{**good, "score": math.nan}], [{**good, "score": 1.5}], [{**good, "score": -0.1}],
-            [{**good, "label": ""}], [{**good, "label": 3}], [{**good, "label": "x" * 65}], ["cup"], "cup",
-            [good] * 513, {"label": "cup"},
-        ])
+        header["detections"] = self._pick(
+            [
+                [{**good, "score": math.nan}],
+                [{**good, "score": 1.5}],
+                [{**good, "score": -0.1}],
+                [{**good, "label": ""}],
+                [{**good, "label": 3}],
+                [{**good, "label": "x" * 65}],
+                ["cup"],
+                "cup",
+                [good] * 513,
+                {"label": "cup"},
+            ]
+        )
         return pack(header, body), Reason.BAD_DETECTIONS.value

@@ -23,8 +23,10 @@ def _feature(mean, var, label: str = "chair", track: int = 0, n: int = 100) -> F
 
 def _group(centre, label: str, count: int, seed: int, first_track: int = 0) -> list[FeatureVector]:
     rng = np.random.default_rng(seed)
-    return [_feature(np.asarray(centre) + rng.normal(0, 0.02, 3), rng.uniform(0.004, 0.006, 3), label,
-                     first_track + q // 3) for q in range(count)]
+    return [
+        _feature(np.asarray(centre) + rng.normal(0, 0.02, 3), rng.uniform(0.004, 0.006, 3), label, first_track + q // 3)
+        for q in range(count)
+    ]
 
 
 def test_bhattacharyya_matches_a_hand_computed_value() -> None:
@@ -42,8 +44,9 @@ def test_distance_matrix_is_the_pairwise_sum_plus_class_penalty() -> None:
     D = bhattacharyya_matrix(means, var, labels, penalty=100.0, var_floor=1e-6)
     for a in range(6):
         for b in range(6):
-            expected = 0.0 if a == b else bhattacharyya(means[a], var[a], means[b], var[b]) + \
-                100.0 * (labels[a] != labels[b])
+            expected = (
+                0.0 if a == b else bhattacharyya(means[a], var[a], means[b], var[b]) + 100.0 * (labels[a] != labels[b])
+            )
             assert D[a, b] == pytest.approx(expected, rel=1e-4, abs=1e-4)
     np.testing.assert_allclose(D, D.T, rtol=1e-5)
 

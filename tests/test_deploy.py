@@ -78,8 +78,9 @@ def effective_settings(args: list[str], env: dict[str, str], monkeypatch) -> tup
     for key, value in env.items():
         monkeypatch.setenv(key, value)
     p = ctx.params
-    settings = _settings(p.get("config"), p.get("robot"), p.get("connect"), p.get("listen"), p.get("mode"),
-                         p.get("state_dir"))
+    settings = _settings(
+        p.get("config"), p.get("robot"), p.get("connect"), p.get("listen"), p.get("mode"), p.get("state_dir")
+    )
     return ctx.info_name, p, settings
 
 
@@ -89,8 +90,10 @@ def _containers() -> dict[str, tuple[list[str], dict[str, str]]]:
     (entrypoint,) = _instructions("ENTRYPOINT")
     assert json.loads(entrypoint) == ["objslam"]
     image = _image_env()
-    containers = {name: (compose[name]["command"], {**image, **compose[name].get("environment", {})})
-                  for name in ("objslam", "replay")}
+    containers = {
+        name: (compose[name]["command"], {**image, **compose[name].get("environment", {})})
+        for name in ("objslam", "replay")
+    }
     containers["objslam healthcheck"] = (_healthcheck()[1][1:], containers["objslam"][1])
     containers["image default"] = (json.loads(_instructions("CMD")[0]), image)
     containers["image healthcheck"] = (_healthcheck()[1][1:], image)
@@ -124,8 +127,9 @@ def test_router_is_the_official_zenoh_image_at_the_version_objslam_pins():
     assert published <= _router_ports()
 
 
-@pytest.mark.parametrize("container", ["objslam", "replay", "objslam healthcheck", "image default",
-                                       "image healthcheck"])
+@pytest.mark.parametrize(
+    "container", ["objslam", "replay", "objslam healthcheck", "image default", "image healthcheck"]
+)
 def test_every_command_line_is_valid_and_reaches_the_router(container, monkeypatch):
     args, env = _containers()[container]
     command, params, settings = effective_settings(args, env, monkeypatch)
@@ -145,8 +149,17 @@ def test_service_healthcheck_and_replay_use_one_robot(monkeypatch):
     assert robots["image default"] == robots["image healthcheck"]
 
 
-@pytest.mark.parametrize("args", [["serve", "--bogus"], ["replay"], ["status", "maps"], ["serve", "--rate", "3"],
-                                  ["serve", "--mode", "clinet"], ["bench", "nothing"]])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["serve", "--bogus"],
+        ["replay"],
+        ["status", "maps"],
+        ["serve", "--rate", "3"],
+        ["serve", "--mode", "clinet"],
+        ["bench", "nothing"],
+    ],
+)
 def test_the_invocation_check_fails_on_a_bad_command_line(args, monkeypatch):
     with pytest.raises(Exception) as info:
         effective_settings(args, {}, monkeypatch)
@@ -176,7 +189,8 @@ def test_state_volume_is_owned_by_the_service_user():
 def test_image_copies_every_package_onto_the_pinned_python():
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())
     copied = {rest.split()[0] for rest in _instructions("COPY")} | {
-        name for rest in _instructions("COPY") for name in rest.split()[:-1]}
+        name for rest in _instructions("COPY") for name in rest.split()[:-1]
+    }
     packages = {p.rstrip("*") for p in project["tool"]["setuptools"]["packages"]["find"]["include"]}
     assert packages <= copied and {"pyproject.toml", "README.md", "models"} <= copied
     assert all((ROOT / name).exists() for name in copied)

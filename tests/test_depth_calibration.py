@@ -8,9 +8,9 @@ import sys
 import numpy as np
 import pytest
 
+from bench.calibrate import calibrate_depth_scale, frame_pairs
 from evaluation.depth_calibration import estimate_depth_scale
 from perception.frame import Intrinsics
-from bench.calibrate import calibrate_depth_scale, frame_pairs
 from sources import DatasetError, ScaledDepth, open_dataset
 
 SCENE = "synthetic:room?seed=0&frames=60"  # 10 cm per frame: pairs 2 frames apart
@@ -60,11 +60,19 @@ def test_frame_pairs_stay_inside_the_range(scene):
 
 
 def test_cli_prints_the_calibrated_scale_and_fails_in_one_line():
-    ok = subprocess.run([sys.executable, "-m", "service", "calibrate", "depth-scale", SCENE, "--gap", "2",
-                         "--stride", "4"], capture_output=True, text=True, timeout=300)
+    ok = subprocess.run(
+        [sys.executable, "-m", "service", "calibrate", "depth-scale", SCENE, "--gap", "2", "--stride", "4"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert ok.returncode == 0, ok.stderr
     assert "calibrated" in ok.stdout and "nominal 1000" in ok.stdout
     too_short = "synthetic:room?seed=0&frames=8"
-    bad = subprocess.run([sys.executable, "-m", "service", "calibrate", "depth-scale", too_short],
-                         capture_output=True, text=True, timeout=300)
+    bad = subprocess.run(
+        [sys.executable, "-m", "service", "calibrate", "depth-scale", too_short],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert bad.returncode == 1 and bad.stderr.startswith("objslam: error:") and len(bad.stderr.splitlines()) == 1

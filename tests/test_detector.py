@@ -14,13 +14,22 @@ from matplotlib import cbook
 from rich.console import Console
 from skimage import data
 
+from bench.detector import run_detector_bench
+from perception.centernet_input import ReshapeError, reshaped_centernet
 from perception.coco import COCO_CLASSES
 from perception.detector import Detector, DetectorConfig, default_model_path
-from perception.centernet_input import ReshapeError, reshaped_centernet
-from perception.detector_decoders import (InputTransform, decode_centernet, decode_nanodet, decode_yolo,
-                                          fitted_height, letterbox, nms, select, stretch)
+from perception.detector_decoders import (
+    InputTransform,
+    decode_centernet,
+    decode_nanodet,
+    decode_yolo,
+    fitted_height,
+    letterbox,
+    nms,
+    select,
+    stretch,
+)
 from perception.frame import Detection
-from bench.detector import run_detector_bench
 
 # Hand-measured object boxes (x1, y1, x2, y2) in image pixels, read off annotated renders with a 50 px grid.
 CAT_CHELSEA = (0.0, 0.0, 451.0, 300.0)  # the cat fills the frame
@@ -44,6 +53,7 @@ def grace_hopper() -> np.ndarray:
 
 # --- pre-processing -----------------------------------------------------------------------------
 
+
 def test_letterbox_centres_the_resized_image_and_the_transform_inverts_it():
     image = np.full((100, 200, 3), 255, np.uint8)
     canvas, tf = letterbox(image, 64, pad_value=114)
@@ -61,6 +71,7 @@ def test_stretch_scales_each_axis_separately():
 
 
 # --- decoders -----------------------------------------------------------------------------------
+
 
 def test_decode_centernet_reads_rows_of_box_score_class():
     rows = np.zeros((1, 100, 6), np.float32)
@@ -101,7 +112,7 @@ def test_decode_nanodet_takes_the_expectation_over_bins():
     reg = heads[32][1]
     reg[0, 3, 0:2] = 100.0  # left: bins 0 and 1 equally likely -> 0.5 bins
     boxes, _, _ = decode_nanodet([a for pair in heads.values() for a in pair], 64)
-    stride32 = boxes[64 + 16:]
+    stride32 = boxes[64 + 16 :]
     centre = (1 + 0.5) * 32, (1 + 0.5) * 32  # cell 3 = row 1, column 1 of the 2x2 grid
     assert stride32[3, 0] == pytest.approx(centre[0] - 0.5 * 32, abs=1e-3)
     assert stride32[3, 2] == pytest.approx(centre[0] + 5.0 * 32, abs=1e-3)  # uniform over 11 bins: mean 5
@@ -131,6 +142,7 @@ def test_letterbox_undo_maps_a_yolo_box_back_to_the_image():
 
 # --- thresholds and NMS -------------------------------------------------------------------------
 
+
 def test_nms_suppresses_overlaps_within_a_class_only():
     boxes = np.array([[0, 0, 10, 10], [1, 1, 11, 11], [0, 0, 10, 10], [50, 50, 60, 60]], np.float32)
     scores = np.array([0.9, 0.8, 0.7, 0.6], np.float32)
@@ -141,8 +153,7 @@ def test_nms_suppresses_overlaps_within_a_class_only():
 
 
 def test_select_applies_per_class_thresholds_and_drops_degenerate_boxes():
-    boxes = np.array([[0, 0, 10, 10], [20, 0, 30, 10], [40, 0, 50, 10], [60, 0, 60, 10], [70, 0, 80, 10]],
-                     np.float32)
+    boxes = np.array([[0, 0, 10, 10], [20, 0, 30, 10], [40, 0, 50, 10], [60, 0, 60, 10], [70, 0, 80, 10]], np.float32)
     scores = np.array([0.5, 0.5, 0.35, 0.9, 1.0], np.float32)
     classes = np.array([0, 1, 2, 2, 3])
     thresholds = np.array([0.3, 0.6, 0.3, np.inf, 0.3], np.float32)  # class 3 is not on the allow-list
@@ -201,6 +212,7 @@ def test_yolo_pipeline_reads_names_letterboxes_with_grey_and_maps_boxes_back(mon
 
 # --- regression on real photos ------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def centernet() -> Detector:
     return Detector(DetectorConfig(kind="centernet"))
@@ -220,13 +232,17 @@ def assert_top(dets: list[Detection], label: str, truth: tuple[float, ...], min_
     assert iou(top.box, truth) >= 0.5, (top, truth)
 
 
-@pytest.mark.parametrize("image, label, truth", [
-    (data.chelsea, "cat", CAT_CHELSEA),
-    (data.coffee, "cup", CUP_COFFEE),
-    (data.astronaut, "person", PERSON_ASTRONAUT),
-    (lambda: data.stereo_motorcycle()[0], "motorcycle", MOTORCYCLE),
-    (grace_hopper, "person", PERSON_HOPPER),
-], ids=["cat-chelsea", "cup-coffee", "person-astronaut", "motorcycle", "person-grace-hopper"])
+@pytest.mark.parametrize(
+    "image, label, truth",
+    [
+        (data.chelsea, "cat", CAT_CHELSEA),
+        (data.coffee, "cup", CUP_COFFEE),
+        (data.astronaut, "person", PERSON_ASTRONAUT),
+        (lambda: data.stereo_motorcycle()[0], "motorcycle", MOTORCYCLE),
+        (grace_hopper, "person", PERSON_HOPPER),
+    ],
+    ids=["cat-chelsea", "cup-coffee", "person-astronaut", "motorcycle", "person-grace-hopper"],
+)
 def test_centernet_finds_the_object_of_each_photo(centernet, image, label, truth):
     dets = centernet.detect(image())
     assert_top(dets, label, truth)
@@ -243,15 +259,21 @@ def test_centernet_reports_nothing_confident_on_the_rocket(centernet):
 
 
 def test_fitted_height_follows_the_aspect_in_multiples_of_32():
-    assert [fitted_height(w, h, 512) for w, h in ((640, 480), (512, 512), (600, 400), (480, 640), (1280, 720))] == \
-        [384, 512, 352, 512, 288]
+    assert [fitted_height(w, h, 512) for w, h in ((640, 480), (512, 512), (600, 400), (480, 640), (1280, 720))] == [
+        384,
+        512,
+        352,
+        512,
+        288,
+    ]
 
 
 def test_letterbox_into_a_wide_canvas_centres_and_inverts():
     img, tf = letterbox(np.full((300, 640, 3), 7, np.uint8), 512, 0, 288)
     assert img.shape == (288, 512, 3) and img[0, 0, 0] == 0 and img[144, 256, 0] == 7
-    np.testing.assert_allclose(tf.to_image(np.array([[tf.pad_x, tf.pad_y, 512 - tf.pad_x, 288 - tf.pad_y]])),
-                               [[0, 0, 640, 300]], atol=1)
+    np.testing.assert_allclose(
+        tf.to_image(np.array([[tf.pad_x, tf.pad_y, 512 - tf.pad_x, 288 - tf.pad_y]])), [[0, 0, 640, 300]], atol=1
+    )
 
 
 def test_centernet_on_a_4_3_image_runs_512_x_384_and_finds_what_the_square_input_finds(centernet):
@@ -287,8 +309,13 @@ def test_allow_list_and_class_thresholds_filter_labels():
 
 def test_coco_names_are_the_standard_80():
     assert len(COCO_CLASSES) == 80 and len(set(COCO_CLASSES)) == 80
-    assert (COCO_CLASSES[0], COCO_CLASSES[41], COCO_CLASSES[56], COCO_CLASSES[62], COCO_CLASSES[79]) == \
-        ("person", "cup", "chair", "tv", "toothbrush")
+    assert (COCO_CLASSES[0], COCO_CLASSES[41], COCO_CLASSES[56], COCO_CLASSES[62], COCO_CLASSES[79]) == (
+        "person",
+        "cup",
+        "chair",
+        "tv",
+        "toothbrush",
+    )
 
 
 def test_shipped_models_are_present():

@@ -9,9 +9,9 @@ import sys
 import numpy as np
 import pytest
 
+from evaluation.object_metrics import aligned_objects, object_scores
 from service.config import load_settings
 from service.evaluate import evaluate_run, with_section
-from evaluation.object_metrics import aligned_objects, object_scores
 from service.run import run_dataset
 from sources import DatasetError, open_dataset
 from tests.test_tum_loader import _write_tum
@@ -43,13 +43,15 @@ def test_eval_measures_trajectory_and_objects_and_keeps_the_run_report(run_dir):
 
 def test_objects_are_scored_in_the_ground_truth_frame_through_the_alignment():
     truth = open_dataset(SPEC).objects
-    entries = [{"label": t.label, "mean": list(t.center), "cov": np.diag(np.square(t.size) / 12).tolist()}
-               for t in truth]
+    entries = [
+        {"label": t.label, "mean": list(t.center), "cov": np.diag(np.square(t.size) / 12).tolist()} for t in truth
+    ]
     T = np.eye(4)
     T[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
     T[:3, 3] = [1.0, 2.0, 0.0]
-    moved = [{**e, "mean": list(np.linalg.inv(T)[:3, :3] @ np.asarray(e["mean"]) + np.linalg.inv(T)[:3, 3])}
-             for e in entries]  # the map frame differs from the ground truth's by T
+    moved = [
+        {**e, "mean": list(np.linalg.inv(T)[:3, :3] @ np.asarray(e["mean"]) + np.linalg.inv(T)[:3, 3])} for e in entries
+    ]  # the map frame differs from the ground truth's by T
     scores = object_scores(aligned_objects(moved, T), truth, 1.5)
     assert scores["matched"] == len(truth) and scores["false"] == 0 and scores["median_centroid_error_m"] < 1e-9
     assert object_scores(aligned_objects(moved, np.eye(4)), truth, 1.5)["matched"] < len(truth)
@@ -65,6 +67,10 @@ def test_eval_without_ground_truth_fails_with_one_clear_line(run_dir, tmp_path):
     _write_tum(tmp_path, odometry=False, detections=False)  # no groundtruth.txt
     with pytest.raises(DatasetError, match="no ground truth"):
         evaluate_run(run_dir, str(tmp_path))
-    cli = subprocess.run([sys.executable, "-m", "service", "eval", str(run_dir), "--gt", str(tmp_path)],
-                         capture_output=True, text=True, timeout=60)
+    cli = subprocess.run(
+        [sys.executable, "-m", "service", "eval", str(run_dir), "--gt", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert cli.returncode == 1 and cli.stderr.startswith("objslam: error:") and len(cli.stderr.splitlines()) == 1

@@ -33,11 +33,14 @@ GOOD_SHARE = 0.2
 @pytest.fixture
 def service():
     port = free_port()
-    settings = load_settings(None, {
-        "robot": "fuzz",
-        "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"], "multicast_scouting": False},
-        "detector": {"enabled": False},  # good frames carry detections; never load the ONNX model
-    })
+    settings = load_settings(
+        None,
+        {
+            "robot": "fuzz",
+            "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"], "multicast_scouting": False},
+            "detector": {"enabled": False},  # good frames carry detections; never load the ONNX model
+        },
+    )
     server = open_session(settings.zenoh, "server")
     node = ServiceNode(settings, server)
     node.start()
@@ -103,13 +106,19 @@ def test_ten_thousand_bad_frames_are_each_counted_by_reason_and_good_frames_keep
     _drain(node, sent)
 
     status = _get(client, f"{prefix}/status")
-    print(f"\nfuzz: {sent} frames, by class {dict(sorted(by_class.items()))}\nstatus: processed "
-          f"{status['frames_processed']}, rejected {status['frames_rejected']}, dropped {status['frames_dropped']}")
+    print(
+        f"\nfuzz: {sent} frames, by class {dict(sorted(by_class.items()))}\nstatus: processed "
+        f"{status['frames_processed']}, rejected {status['frames_rejected']}, dropped {status['frames_dropped']}"
+    )
     assert node._worker.is_alive()
     assert status["frames_received"] == sent >= STORM
     assert status["errors"] == {}
-    assert status["frames_received"] == (status["frames_processed"] + status["frames_rejected_total"]
-                                         + status["frames_dropped"] + sum(status["errors"].values()))
+    assert status["frames_received"] == (
+        status["frames_processed"]
+        + status["frames_rejected_total"]
+        + status["frames_dropped"]
+        + sum(status["errors"].values())
+    )
     assert status["frames_dropped"] == 0  # paced below the queue capacity
     assert status["frames_processed"] == expected.pop(PROCESSED)
     assert status["frames_rejected"] == dict(expected)

@@ -49,13 +49,22 @@ def test_replayed_frames_are_all_processed_and_trajectory_equals_chained_odometr
     common = ["--mode", "client", "--connect", endpoint, "--robot", "itest"]
     serve_only = ["--lc-source", "off"]
     # odometry factors only (no loop closures, objects not in the graph): the estimate must equal the chain
-    serve = _objslam("serve", *common, *serve_only, "--state-dir", str(tmp_path / "state"),
-                     env={"OBJSLAM_OBJECTS__LANDMARKS": "false"},
-                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    serve = _objslam(
+        "serve",
+        *common,
+        *serve_only,
+        "--state-dir",
+        str(tmp_path / "state"),
+        env={"OBJSLAM_OBJECTS__LANDMARKS": "false"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
     try:
         _wait_for_service(session, "objslam/itest/status")
-        replay = _objslam("replay", SPEC, "--rate", "15", *common, stdout=subprocess.PIPE,
-                          stderr=subprocess.STDOUT, text=True)
+        replay = _objslam(
+            "replay", SPEC, "--rate", "15", *common, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+        )
         out, _ = replay.communicate(timeout=240)
         assert replay.returncode == 0, out
         status = {}
@@ -69,8 +78,9 @@ def test_replayed_frames_are_all_processed_and_trajectory_equals_chained_odometr
         assert status["frames_rejected"] == {} and status["frames_dropped"] == 0
         assert 1 < status["keyframes"] < FRAMES and status["protocol_version"] == 1
 
-        cli = subprocess.run([sys.executable, "-m", "service", "status", "--json", *common],
-                             capture_output=True, text=True, timeout=60)
+        cli = subprocess.run(
+            [sys.executable, "-m", "service", "status", "--json", *common], capture_output=True, text=True, timeout=60
+        )
         assert cli.returncode == 0, cli.stderr
         assert json.loads(cli.stdout)["frames_processed"] == FRAMES
 
@@ -95,16 +105,24 @@ def test_replayed_frames_are_all_processed_and_trajectory_equals_chained_odometr
 
 def test_status_without_a_service_fails_with_one_clear_line(tmp_path):
     port = free_port()
-    cli = subprocess.run([sys.executable, "-m", "service", "status", "--connect", f"tcp/127.0.0.1:{port}",
-                          "--mode", "client"], capture_output=True, text=True, timeout=60,
-                         env={**os.environ, "OBJSLAM_ZENOH__QUERY_TIMEOUT_S": "1"})
+    cli = subprocess.run(
+        [sys.executable, "-m", "service", "status", "--connect", f"tcp/127.0.0.1:{port}", "--mode", "client"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "OBJSLAM_ZENOH__QUERY_TIMEOUT_S": "1"},
+    )
     assert cli.returncode != 0
     assert "objslam: error:" in cli.stderr and len(cli.stderr.strip().splitlines()) == 1
 
 
 @pytest.mark.parametrize("args", [["--rate", "0"], ["--rate", "5", "--max-rate"]])
 def test_replay_with_an_invalid_rate_fails_with_one_clear_line(args):
-    cli = subprocess.run([sys.executable, "-m", "service", "replay", "synthetic:room?frames=3", *args],
-                         capture_output=True, text=True, timeout=60)
+    cli = subprocess.run(
+        [sys.executable, "-m", "service", "replay", "synthetic:room?frames=3", *args],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert cli.returncode == 1 and "Traceback" not in cli.stderr
     assert cli.stderr.strip().startswith("objslam: error: --rate") and len(cli.stderr.strip().splitlines()) == 1

@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from graph.geometry import motion_magnitude, pose_from_tum, relative
 from bench.rig import free_port, query_status, router, start_serve, stop_serve, wait_for_status
+from graph.geometry import motion_magnitude, pose_from_tum, relative
 from sources import open_dataset
 
 pytestmark = pytest.mark.integration
@@ -26,14 +26,37 @@ def test_policy_proposals_become_verified_loop_closures_and_none_is_false():
     port = free_port()
     hub = router(port)
     endpoint = f"tcp/127.0.0.1:{port}"
-    serve, log = start_serve(endpoint, "rl", env={"OBJSLAM_LOOPS__SOURCE": "policy",
-                                                  "OBJSLAM_LOOPS__POLICY": str(POLICY),
-                                                  "OBJSLAM_INGEST__QUEUE_SIZE": "512"})
+    serve, log = start_serve(
+        endpoint,
+        "rl",
+        env={
+            "OBJSLAM_LOOPS__SOURCE": "policy",
+            "OBJSLAM_LOOPS__POLICY": str(POLICY),
+            "OBJSLAM_INGEST__QUEUE_SIZE": "512",
+        },
+    )
     try:
         wait_for_status(hub, "objslam/rl/status", serve, log)
-        replay = subprocess.run([sys.executable, "-m", "service", "replay", SPEC, "--rate", "30", "--robot", "rl",
-                                 "--mode", "client", "--connect", endpoint], capture_output=True, text=True,
-                                timeout=300)
+        replay = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "service",
+                "replay",
+                SPEC,
+                "--rate",
+                "30",
+                "--robot",
+                "rl",
+                "--mode",
+                "client",
+                "--connect",
+                endpoint,
+            ],
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert replay.returncode == 0, replay.stderr[-2000:]
         status: dict = {}
         for _ in range(1200):

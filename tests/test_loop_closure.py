@@ -7,9 +7,9 @@ import pytest
 
 from graph.geometry import relative
 from graph.pose_graph import PoseGraph
-from perception.odometry import FeatureExtractor, RelativePoseEstimator
-from loops.place_recognition import PlaceIndex, global_descriptor
 from loops.closer import KeyframeEntry, LoopCloser, LoopConfig
+from loops.place_recognition import PlaceIndex, global_descriptor
+from perception.odometry import FeatureExtractor, RelativePoseEstimator
 from sources import open_dataset
 
 

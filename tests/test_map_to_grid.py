@@ -62,8 +62,9 @@ def test_grid_puts_walls_objects_and_crossings_where_the_map_has_them():
     wall = wall_points(-0.3, -0.5, 2.5)  # a wall beside the left side of the square
     points = np.concatenate([floor_points(), wall])
     chair = np.array([1.0, 1.0, 0.4])
-    grid = build_grid("test", poses, t, points, [("chair", chair), ("cup", np.array([2.0, 2.0, 0.9]))],
-                      cell_m=0.25, min_gap_s=5.0)
+    grid = build_grid(
+        "test", poses, t, points, [("chair", chair), ("cup", np.array([2.0, 2.0, 0.9]))], cell_m=0.25, min_gap_s=5.0
+    )
     frame = GroundFrame.from_json(grid.meta["frame"])
     wall_cells = frame.cells(wall[wall[:, 2] > 0.3])
     wall_cells = wall_cells[frame.inside(wall_cells)]
@@ -72,7 +73,7 @@ def test_grid_puts_walls_objects_and_crossings_where_the_map_has_them():
     assert not grid.walls[track[:, 0], track[:, 1]].any()  # where the camera went is free
     assert len(grid.features) == 2 and grid.meta["objects"] == ["chair", "cup"]
     chair_cell = frame.cells(chair[None])[0]
-    (fr, fc), = grid.features[0]
+    ((fr, fc),) = grid.features[0]
     assert abs(fr - chair_cell[0]) + abs(fc - chair_cell[1]) <= 4  # nearest free cell to the chair
     assert 2 <= grid.n_loops <= 20
     track_set = {tuple(c) for c in track}

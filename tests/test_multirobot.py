@@ -24,9 +24,13 @@ ROBOTS = {  # robot -> (dataset, frames): different seeds and lengths, small ima
 
 
 def _objslam(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "service", *args],
-                            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return subprocess.Popen(
+        [sys.executable, "-m", "service", *args],
+        env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
 
 
 def _get(session: zenoh.Session, key: str, timeout: float = 5.0) -> dict | None:
@@ -71,14 +75,24 @@ def test_two_robots_on_one_router_keep_separate_maps_and_status(router):
     client = ["--mode", "client", "--connect", endpoint]
     # a queue large enough for the whole replay: this test is about isolation, not about keeping up; odometry
     # factors only (no loop closures, objects not in the graph), so each trajectory must be its own odometry
-    serves = {r: _objslam("serve", "--robot", r, *client, "--lc-source", "off",
-                          env={"OBJSLAM_INGEST__QUEUE_SIZE": "512", "OBJSLAM_OBJECTS__LANDMARKS": "false"})
-              for r in ROBOTS}
+    serves = {
+        r: _objslam(
+            "serve",
+            "--robot",
+            r,
+            *client,
+            "--lc-source",
+            "off",
+            env={"OBJSLAM_INGEST__QUEUE_SIZE": "512", "OBJSLAM_OBJECTS__LANDMARKS": "false"},
+        )
+        for r in ROBOTS
+    }
     try:
         for r in ROBOTS:
             _wait(lambda r=r: _get(session, f"objslam/{r}/status", timeout=1.0), f"robot {r} to serve")
-        replays = {r: _objslam("replay", spec, "--rate", "20", "--robot", r, *client)
-                   for r, (spec, _) in ROBOTS.items()}  # both publish at the same time
+        replays = {
+            r: _objslam("replay", spec, "--rate", "20", "--robot", r, *client) for r, (spec, _) in ROBOTS.items()
+        }  # both publish at the same time
         for r, proc in replays.items():
             out, _ = proc.communicate(timeout=120)
             assert proc.returncode == 0, out
@@ -102,8 +116,12 @@ def test_two_robots_on_one_router_keep_separate_maps_and_status(router):
         n = min(len(t) for t in trajectories.values())
         assert np.abs(trajectories["a"][:n, 1:4] - trajectories["b"][:n, 1:4]).max() > 0.05  # different paths
 
-        cli = subprocess.run([sys.executable, "-m", "service", "status", "--json", "--robot", "b", *client],
-                             capture_output=True, text=True, timeout=60)
+        cli = subprocess.run(
+            [sys.executable, "-m", "service", "status", "--json", "--robot", "b", *client],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
         assert cli.returncode == 0, cli.stderr
         assert json.loads(cli.stdout)["frames_received"] == ROBOTS["b"][1]
     finally:

@@ -12,8 +12,8 @@ from service.config import load_settings
 from service.node import ServiceNode
 from service.protocol import encode_frame
 from service.replay import frame_publisher
-from sources import open_dataset
 from service.zenoh_session import open_session
+from sources import open_dataset
 from tests.conftest import make_frame
 
 
@@ -56,11 +56,16 @@ def test_loop_events_name_each_accepted_loop_once_and_each_retraction():
     first = [{"factor": 5, "accepted": True}, {"accepted": False, "reason": "too_few_inliers"}]
     assert node._loop_events(first) == [{"type": "loop_closure", "accepted": 1, "latest": [first[0]]}]
     assert node._loop_events(first) == []  # nothing new
-    later = [{"factor": 5, "accepted": False, "reason": "retracted_inconsistent"}, first[1],
-             {"factor": 9, "accepted": True}, {"factor": 7, "accepted": True}]
+    later = [
+        {"factor": 5, "accepted": False, "reason": "retracted_inconsistent"},
+        first[1],
+        {"factor": 9, "accepted": True},
+        {"factor": 7, "accepted": True},
+    ]
     assert node._loop_events(later) == [
         {"type": "loop_closure", "accepted": 2, "latest": [later[3], later[2]]},
-        {"type": "loop_retracted", "accepted": 2, "retracted": [later[0]]}]
+        {"type": "loop_retracted", "accepted": 2, "retracted": [later[0]]},
+    ]
 
 
 @pytest.mark.integration
@@ -116,8 +121,9 @@ def test_save_writes_the_outputs_of_a_running_service_on_request(tmp_path):
                 continue
             reply = json.loads(replies[0].ok.payload.to_bytes())
             assert reply["frames_processed"] == len(data) and reply["keyframes"] == node.status()["keyframes"]
-            assert {"trajectory.tum", "odometry.tum", "objects.json", "loops.json", "report.md",
-                    "map.png"} <= set(reply["files"])
+            assert {"trajectory.tum", "odometry.tum", "objects.json", "loops.json", "report.md", "map.png"} <= set(
+                reply["files"]
+            )
             rows = [r for r in (state_dir / "trajectory.tum").read_text().splitlines() if r and r[0] != "#"]
             assert len(rows) == len(data)
             assert json.loads((state_dir / "objects.json").read_text()) == node.objects_reply()["objects"]

@@ -163,8 +163,10 @@ def _side_by_side_views(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarr
 def test_an_object_whose_seen_part_leaves_the_image_is_associated_by_its_moved_depths() -> None:
     K, T, prev, cur = _side_by_side_views()
     chair = [Detection("chair", 0.9, (270.0, 200.0, 470.0, 300.0))]
-    current = [Detection("chair", 0.9, (395.0, 200.0, 545.0, 300.0)),
-               Detection("tv", 0.9, (395.0, 200.0, 545.0, 300.0))]
+    current = [
+        Detection("chair", 0.9, (395.0, 200.0, 545.0, 300.0)),
+        Detection("tv", 0.9, (395.0, 200.0, 545.0, 300.0)),
+    ]
     config = NPDAConfig()
     result = associate(chair, prev, current, cur, K, T, config)
     assert result.warped and result.pairs == [(0, 0)] and result.scores[0, 1] == 0.0  # class gate holds

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from bench.association import load_scene
 from graph.object_landmarks import LandmarkConfig, ObjectLandmarks
 from graph.pose_graph import PoseGraph
 from perception.clustering import ObjectEllipsoid
 from perception.features import FeatureConfig, transform_feature
 from perception.object_map import ObjectMapper
-from bench.association import load_scene
 from service.config import load_settings
 from slam.core import Pipeline
 from sources import open_dataset
@@ -67,8 +67,9 @@ def test_repose_follows_a_pose_correction_of_part_of_the_sequence(scene):
     mapper.repose(moved)
     for f in mapper.clusterer.features:
         parts = [transform_feature(mapper._obs_local[i], moved[mapper._obs_keyframe[i]]) for i in f.sources]
-        np.testing.assert_allclose(f.mean, np.average([p.mean for p in parts], axis=0, weights=[p.n for p in parts]),
-                                   atol=1e-9)
+        np.testing.assert_allclose(
+            f.mean, np.average([p.mean for p in parts], axis=0, weights=[p.n for p in parts]), atol=1e-9
+        )
 
 
 def _chain(n: int) -> tuple[PoseGraph, list[np.ndarray]]:
@@ -148,20 +149,34 @@ def test_the_pipeline_puts_objects_in_the_graph_and_re_clusters_after_loop_closu
     bound = p.settings.objects.repose_m + 6.0 * np.radians(p.settings.objects.repose_deg)
     poses = p.graph.poses()
     mapper = p.objects
-    worst = max(np.linalg.norm(f.mean - np.average(
-        [transform_feature(mapper._obs_local[i], poses[mapper._obs_keyframe[i]]).mean for i in f.sources], axis=0,
-        weights=[mapper._obs_local[i].n for i in f.sources])) for f in mapper.clusterer.features)
+    worst = max(
+        np.linalg.norm(
+            f.mean
+            - np.average(
+                [transform_feature(mapper._obs_local[i], poses[mapper._obs_keyframe[i]]).mean for i in f.sources],
+                axis=0,
+                weights=[mapper._obs_local[i].n for i in f.sources],
+            )
+        )
+        for f in mapper.clusterer.features
+    )
     assert worst <= bound
     # every landmark measurement the bookkeeping holds is a live factor of the landmark it names
-    assert all(i is not None and i not in p.graph._removed and p.graph.factors[i].b == j
-               for j, i in p.landmarks.assigned.values() if j in p.graph.landmarks_in_solver())
+    assert all(
+        i is not None and i not in p.graph._removed and p.graph.factors[i].b == j
+        for j, i in p.landmarks.assigned.values()
+        if j in p.graph.landmarks_in_solver()
+    )
 
 
 def test_a_view_cut_by_the_image_border_weighs_less_in_the_pooled_object(scene):
     """The same box seen whole and cut by the border: the cut view's points count ``cut_weight`` as much, so
     the object's pooled Gaussian leans on the whole view; only whole views measure landmarks."""
-    j = next(i for i, dets in enumerate(scene.dets) if any(
-        d.box[0] > 10 and d.box[2] < scene.depth_m(i).shape[1] - 10 for d in dets))
+    j = next(
+        i
+        for i, dets in enumerate(scene.dets)
+        if any(d.box[0] > 10 and d.box[2] < scene.depth_m(i).shape[1] - 10 for d in dets)
+    )
     whole = next(d for d in scene.dets[j] if d.box[0] > 10 and d.box[2] < scene.depth_m(j).shape[1] - 10)
     cut = replace(whole, box=(0.0, *whole.box[1:]))
     counts = {}

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from service.config import load_settings
-from slam.core import Pipeline
 from service.protocol import FrameRejected, Reason
+from slam.core import Pipeline
 from sources import open_dataset
 from tests.conftest import REDKITCHEN, make_frame, requires_redkitchen
 
@@ -111,6 +111,7 @@ def test_detection_on_its_own_thread_gives_exactly_the_inline_result():
 def test_a_failing_object_mapping_is_counted_and_the_pipeline_goes_on(monkeypatch):
     p = Pipeline(load_settings(None, {"loops": {"source": "off"}}), background=True)
     try:
+
         def broken(*args):
             raise ValueError("a box the mapper cannot handle")
 

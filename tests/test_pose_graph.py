@@ -224,11 +224,21 @@ def test_range_sigmas_and_rotated_landmark_priors_round_trip_through_the_factor_
     from graph.factors import LANDMARK, from_columns, position_covariance, to_columns
 
     R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
-    records = [FactorRecord(2, 0, np.array([0.5, 0.1, 2.0]), 0.1, 0.0, 1.345, LANDMARK, range_sigma_m=0.3),
-               FactorRecord(0, -1, np.array([1.0, 2.0, 0.5]), 0.1, 0.0, None, LANDMARK,
-                            R @ position_covariance(np.array([0.5, 0.1, 2.0]), 0.1, 0.3) @ R.T),
-               FactorRecord(1, -1, np.array([1.0, 2.0, 0.5]), 0.1, 0.0, None, LANDMARK),
-               FactorRecord(0, 1, np.eye(4), 0.02, 1.0)]
+    records = [
+        FactorRecord(2, 0, np.array([0.5, 0.1, 2.0]), 0.1, 0.0, 1.345, LANDMARK, range_sigma_m=0.3),
+        FactorRecord(
+            0,
+            -1,
+            np.array([1.0, 2.0, 0.5]),
+            0.1,
+            0.0,
+            None,
+            LANDMARK,
+            R @ position_covariance(np.array([0.5, 0.1, 2.0]), 0.1, 0.3) @ R.T,
+        ),
+        FactorRecord(1, -1, np.array([1.0, 2.0, 0.5]), 0.1, 0.0, None, LANDMARK),
+        FactorRecord(0, 1, np.eye(4), 0.02, 1.0),
+    ]
     back = from_columns(to_columns(records))
     for r, b in zip(records, back):
         assert (b.a, b.b, b.kind, b.huber_k, b.range_sigma_m) == (r.a, r.b, r.kind, r.huber_k, r.range_sigma_m)

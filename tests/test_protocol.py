@@ -61,7 +61,7 @@ def test_frame_without_odometry_or_detections_decodes_to_none():
 def test_truncated_payloads_are_rejected_as_truncated_or_size_mismatch():
     payload = encode_frame(make_frame(), "png")
     assert _reason(payload[:5]) is Reason.TRUNCATED
-    assert _reason(payload[:PREAMBLE.size + 10]) is Reason.TRUNCATED
+    assert _reason(payload[: PREAMBLE.size + 10]) is Reason.TRUNCATED
     assert _reason(payload[:-1]) is Reason.SIZE_MISMATCH
     assert _reason(payload + b"\0") is Reason.SIZE_MISMATCH
 
@@ -76,19 +76,22 @@ def test_bad_magic_and_unknown_version_are_rejected():
 def test_header_that_is_not_json_is_rejected():
     payload = encode_frame(make_frame(), "png")
     hlen = struct.unpack_from("<I", payload, 8)[0]
-    broken = payload[:PREAMBLE.size] + b"{" * hlen + payload[PREAMBLE.size + hlen:]
+    broken = payload[: PREAMBLE.size] + b"{" * hlen + payload[PREAMBLE.size + hlen :]
     assert _reason(broken) is Reason.BAD_HEADER
 
 
-@pytest.mark.parametrize("field,value", [("fx", float("nan")), ("fy", -1.0), ("cx", 1e9), ("depth_scale", 0),
-                                         ("depth_scale", float("inf")), ("width", 0)])
+@pytest.mark.parametrize(
+    "field,value",
+    [("fx", float("nan")), ("fy", -1.0), ("cx", 1e9), ("depth_scale", 0), ("depth_scale", float("inf")), ("width", 0)],
+)
 def test_bad_intrinsics_are_rejected(field, value):
     payload = encode_frame(make_frame(), "png")
     assert _reason(_rewrite_header(payload, lambda h: h["camera"].update({field: value}))) is Reason.BAD_INTRINSICS
 
 
-@pytest.mark.parametrize("odom", [[0, 0, 0, 0, 0, 0, 2.0], [float("nan")] * 7, [0, 0, 0, 1], "pose",
-                                  [1e9, 0, 0, 0, 0, 0, 1]])
+@pytest.mark.parametrize(
+    "odom", [[0, 0, 0, 0, 0, 0, 2.0], [float("nan")] * 7, [0, 0, 0, 1], "pose", [1e9, 0, 0, 0, 0, 0, 1]]
+)
 def test_bad_odometry_is_rejected(odom):
     payload = encode_frame(make_frame(), "png")
     assert _reason(_rewrite_header(payload, lambda h: h.update(odometry=odom))) is Reason.BAD_POSE
@@ -101,16 +104,18 @@ def test_nan_timestamp_is_a_bad_field():
     assert _reason(_rewrite_header(payload, lambda h: h.update(seq=-1))) is Reason.BAD_FIELD
 
 
-
-@pytest.mark.parametrize("edit", [
-    lambda h: h.update(timestamp=10**400),
-    lambda h: h["camera"].update(fx=10**400),
-    lambda h: h["camera"].update(depth_scale=10**30),
-    lambda h: h.update(odometry=[10**400, 0, 0, 0, 0, 0, 1]),
-    lambda h: h["detections"][0].update(box=[0, 0, 10**400, 5]),
-    lambda h: h["camera"].update(depth_to_color=[[10**400] * 4] * 4),
-    lambda h: h.update(unknown=-(2**63)),
-])
+@pytest.mark.parametrize(
+    "edit",
+    [
+        lambda h: h.update(timestamp=10**400),
+        lambda h: h["camera"].update(fx=10**400),
+        lambda h: h["camera"].update(depth_scale=10**30),
+        lambda h: h.update(odometry=[10**400, 0, 0, 0, 0, 0, 1]),
+        lambda h: h["detections"][0].update(box=[0, 0, 10**400, 5]),
+        lambda h: h["camera"].update(depth_to_color=[[10**400] * 4] * 4),
+        lambda h: h.update(unknown=-(2**63)),
+    ],
+)
 def test_integers_beyond_64_bits_are_a_bad_header_not_an_overflow(edit):
     # fuzz finding: such literals made float() raise OverflowError (or int() ValueError) past the validators
     payload = encode_frame(make_frame(), "rgb8", "u16le")
@@ -128,14 +133,18 @@ def test_largest_64_bit_integers_still_decode():
     payload = encode_frame(make_frame(), "rgb8", "u16le")
     assert decode_frame(_rewrite_header(payload, lambda h: h.update(seq=2**63 - 1))).seq == 2**63 - 1
 
-@pytest.mark.parametrize("dets", [
-    [{"label": "cup", "score": 0.5, "box": [10, 10, 5, 5]}],           # corners out of order
-    [{"label": "cup", "score": 0.5, "box": [1000, 1000, 2000, 2000]}],  # outside the image
-    [{"label": "cup", "score": 1.5, "box": [1, 1, 5, 5]}],              # score out of range
-    [{"label": "", "score": 0.5, "box": [1, 1, 5, 5]}],                 # empty label
-    [{"label": "cup", "score": 0.5, "box": [1, 1, float("nan"), 5]}],   # NaN coordinate
-    "cup",
-])
+
+@pytest.mark.parametrize(
+    "dets",
+    [
+        [{"label": "cup", "score": 0.5, "box": [10, 10, 5, 5]}],  # corners out of order
+        [{"label": "cup", "score": 0.5, "box": [1000, 1000, 2000, 2000]}],  # outside the image
+        [{"label": "cup", "score": 1.5, "box": [1, 1, 5, 5]}],  # score out of range
+        [{"label": "", "score": 0.5, "box": [1, 1, 5, 5]}],  # empty label
+        [{"label": "cup", "score": 0.5, "box": [1, 1, float("nan"), 5]}],  # NaN coordinate
+        "cup",
+    ],
+)
 def test_absurd_detections_are_rejected(dets):
     payload = encode_frame(make_frame(), "png")
     assert _reason(_rewrite_header(payload, lambda h: h.update(detections=dets))) is Reason.BAD_DETECTIONS
@@ -143,8 +152,9 @@ def test_absurd_detections_are_rejected(dets):
 
 def test_boxes_partly_outside_are_clipped_to_the_image():
     f = make_frame()
-    payload = _rewrite_header(encode_frame(f, "png"),
-                              lambda h: h.update(detections=[{"label": "tv", "score": 0.7, "box": [-5, -5, 30, 400]}]))
+    payload = _rewrite_header(
+        encode_frame(f, "png"), lambda h: h.update(detections=[{"label": "tv", "score": 0.7, "box": [-5, -5, 30, 400]}])
+    )
     assert decode_frame(payload).detections[0].box == (0.0, 0.0, 30.0, 48.0)
 
 
@@ -159,7 +169,7 @@ def test_corrupt_image_bytes_are_bad_image():
     payload = bytearray(encode_frame(f, "png"))
     header, body = split_message(bytes(payload))
     start = len(payload) - len(body)
-    payload[start:start + 40] = b"\0" * 40  # destroy the colour PNG signature
+    payload[start : start + 40] = b"\0" * 40  # destroy the colour PNG signature
     assert _reason(bytes(payload)) is Reason.BAD_IMAGE
 
 

@@ -8,11 +8,11 @@ import sys
 import numpy as np
 import pytest
 
-from graph.geometry import pose_to_tum, relative
-from evaluation.trajectory_metrics import trajectory_error
-from perception.frame import Intrinsics
-from evaluation.reference_check import PairCheck, depth_residual, repaired
 from bench.calibrate import check_loops, check_reference, frame_pairs
+from evaluation.reference_check import PairCheck, depth_residual, repaired
+from evaluation.trajectory_metrics import trajectory_error
+from graph.geometry import pose_to_tum, relative
+from perception.frame import Intrinsics
 from sources import open_dataset, truth_per_frame
 
 SCENE = "synthetic:room?seed=0&frames=60"
@@ -31,7 +31,7 @@ def _glitched(truth: np.ndarray) -> np.ndarray:
     G[:3, :3] = [[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]]
     G[:3, 3] = [0.04, -0.01, 0.01]
     out = truth.copy()
-    out[GLITCH_AT + 1:] = G @ truth[GLITCH_AT + 1:]
+    out[GLITCH_AT + 1 :] = G @ truth[GLITCH_AT + 1 :]
     return out
 
 
@@ -78,8 +78,7 @@ def test_loop_records_are_checked_against_reference_and_depth(scene):
     true_pose = relative(truth[4], truth[6])  # pose of the query (6) in the match frame (4)
     wrong = true_pose.copy()
     wrong[:3, 3] += [0.05, 0.0, 0.0]
-    record = lambda T: {"accepted": True, "match_frame": 4, "query_frame": 6,  # noqa: E731
-                        "relative_pose": list(pose_to_tum(T))}
+    record = lambda T: {"accepted": True, "match_frame": 4, "query_frame": 6, "relative_pose": list(pose_to_tum(T))}
     checks = check_loops(scene, [record(true_pose), record(wrong), dict(record(wrong), accepted=False)])
     assert len(checks) == 2
     right, off = checks
@@ -90,8 +89,9 @@ def test_loop_records_are_checked_against_reference_and_depth(scene):
 
 def test_loop_records_of_another_dataset_are_refused(scene):
     with pytest.raises(ValueError, match="indices of this dataset"):
-        check_loops(scene, [{"accepted": True, "match_frame": 4, "query_frame": 600,
-                             "relative_pose": [0, 0, 0, 0, 0, 0, 1]}])
+        check_loops(
+            scene, [{"accepted": True, "match_frame": 4, "query_frame": 600, "relative_pose": [0, 0, 0, 0, 0, 0, 1]}]
+        )
 
 
 def test_repair_of_a_slice_replaces_only_the_refuted_step():
@@ -102,8 +102,20 @@ def test_repair_of_a_slice_replaces_only_the_refuted_step():
     glitched = true.copy()
     glitched[4:, 0, 3] += 0.05
     T_depth = relative(true[4], true[3])  # maps frame 23's points into frame 24
-    checks = [PairCheck(20 + k, 21 + k, relative(glitched[k + 1], glitched[k]), T_depth if k == 3 else None,
-                        0.02 if k == 3 else 0.004, 0.004, 0.01, 0.05, 0.0) for k in range(7)]
+    checks = [
+        PairCheck(
+            20 + k,
+            21 + k,
+            relative(glitched[k + 1], glitched[k]),
+            T_depth if k == 3 else None,
+            0.02 if k == 3 else 0.004,
+            0.004,
+            0.01,
+            0.05,
+            0.0,
+        )
+        for k in range(7)
+    ]
     fixed, refuted = repaired(glitched, checks, 0.005, first_frame=20)
     assert refuted == [23]
     np.testing.assert_allclose(fixed[4:], glitched[4:])  # the newest part keeps its place
@@ -117,13 +129,32 @@ def test_pair_arguments_are_checked(scene):
 
 
 def test_cli_prints_the_check_and_fails_in_one_line(tmp_path):
-    ok = subprocess.run([sys.executable, "-m", "service", "calibrate", "reference", SCENE, "--stop", "6",
-                         "--write", str(tmp_path / "b.md")], capture_output=True, text=True, timeout=300)
+    ok = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "service",
+            "calibrate",
+            "reference",
+            SCENE,
+            "--stop",
+            "6",
+            "--write",
+            str(tmp_path / "b.md"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert ok.returncode == 0, ok.stderr
     assert "reference against depth" in ok.stdout
     assert "<!-- bench:reference -->" in (tmp_path / "b.md").read_text()
-    bad = subprocess.run([sys.executable, "-m", "service", "calibrate", "reference", SCENE, "--start", "70"],
-                         capture_output=True, text=True, timeout=300)
+    bad = subprocess.run(
+        [sys.executable, "-m", "service", "calibrate", "reference", SCENE, "--start", "70"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert bad.returncode == 1 and bad.stderr.startswith("objslam: error:") and len(bad.stderr.splitlines()) == 1
 
 

@@ -31,8 +31,14 @@ def test_registered_env_passes_check_env():
 
 def test_shipped_configurations_match_table_3_1():
     sizes = {g: (GridMap.load(g).shape, GridMap.load(g).n_loops) for g in SHIPPED}
-    assert sizes == {"config1": ((10, 10), 2), "config2": ((10, 10), 4), "config3": ((10, 10), 5),
-                     "config4": ((10, 10), 8), "config5": ((15, 15), 14), "config6": ((84, 84), 20)}
+    assert sizes == {
+        "config1": ((10, 10), 2),
+        "config2": ((10, 10), 4),
+        "config3": ((10, 10), 5),
+        "config4": ((10, 10), 8),
+        "config5": ((15, 15), 14),
+        "config6": ((84, 84), 20),
+    }
     for name in SHIPPED:
         g = GridMap.load(name)
         assert len(g.features) >= 8 and len({cell for b in g.features for cell in b}) == sum(map(len, g.features))
@@ -101,7 +107,7 @@ def test_observation_shows_agent_and_only_what_it_sees():
     obs, _ = env.reset(seed=0, options={"cell": (3, 1), "heading": 1})
     assert obs.shape == (84, 84, 3) and obs.dtype == np.uint8
     px = 84 / 7
-    centre = lambda r, c: obs[int((r + 0.5) * px), int((c + 0.5) * px)]  # noqa: E731
+    centre = lambda r, c: obs[int((r + 0.5) * px), int((c + 0.5) * px)]
     assert tuple(centre(3, 1)) == AGENT
     assert tuple(centre(3, 4)) == (255, 255, 255)  # the wall is seen
     assert tuple(centre(3, 6)) == (0, 0, 0)  # occluded behind it
@@ -122,8 +128,12 @@ def test_reward_table_and_due_rule_with_last_c_exclusion():
     env.reset(seed=0)
     loop2 = (5, 5)  # location index 1 -> action 2
     cases = [  # (first visit, action, expected reward, due)
-        (10, 2, CORRECT_LOOP, True), (10, 0, WRONG, True), (10, 1, WRONG, True),
-        (15, 2, CORRECT_LOOP, True), (16, 2, WRONG, False), (16, 0, CORRECT_NONE, False),  # t=20, c=4: 15 < 16
+        (10, 2, CORRECT_LOOP, True),
+        (10, 0, WRONG, True),
+        (10, 1, WRONG, True),
+        (15, 2, CORRECT_LOOP, True),
+        (16, 2, WRONG, False),
+        (16, 0, CORRECT_NONE, False),  # t=20, c=4: 15 < 16
         (20, 0, CORRECT_NONE, False),  # first visit now
     ]
     for first, action, reward, due in cases:
@@ -185,11 +195,23 @@ def test_visited_info_is_the_memory_that_decides_due():
     env = LoopClosureGrid(open_map(), rules=GridRules(exclude_last=4, terminate=False))  # loops (1, 1), (5, 5)
     env.reset(seed=0, options={"cell": (1, 1), "heading": 1})
     up, right, down, left = 0, 1, 2, 3
-    script = [(right, 2), (right, 2), (down, 2), (down, 2),  # t = 4: first visit of location 1 at (5, 5)
-              (up, 1), (down, 1),  # t = 6: back at (5, 5) within the last c steps
-              (left, 2), (up, 2), (up, 2), (left, 2),  # t = 10: back at (1, 1), first visited at t = 0
-              (right, 2), (right, 2), (down, 2), (down, 2),  # t = 14: (5, 5) again, first visit 4 < 14 - 4
-              (left, 1)]
+    script = [
+        (right, 2),
+        (right, 2),
+        (down, 2),
+        (down, 2),  # t = 4: first visit of location 1 at (5, 5)
+        (up, 1),
+        (down, 1),  # t = 6: back at (5, 5) within the last c steps
+        (left, 2),
+        (up, 2),
+        (up, 2),
+        (left, 2),  # t = 10: back at (1, 1), first visited at t = 0
+        (right, 2),
+        (right, 2),
+        (down, 2),
+        (down, 2),  # t = 14: (5, 5) again, first visit 4 < 14 - 4
+        (left, 1),
+    ]
     infos = []
     for move in script:
         env.valid_moves = lambda cell=None, move=move: [move]

@@ -14,8 +14,7 @@ torch = pytest.importorskip("torch", reason="the train extra (torch) is not inst
 
 from rl.gridmap import GridMap  # noqa: E402
 from rl.ppo import TrainConfig, Trainer, distinct_frames  # noqa: E402
-from rl.pretrain import (MemoryPretrainer, PretrainConfig, Walks, action_logits, memory_scores,  # noqa: E402
-                         record_walks)
+from rl.pretrain import MemoryPretrainer, PretrainConfig, Walks, action_logits, memory_scores, record_walks  # noqa: E402
 
 
 def test_recorded_walks_are_seeded_and_a_loop_closure_is_due_exactly_where_the_visit_bit_is_set():
@@ -44,13 +43,20 @@ def test_memory_scores_count_the_bit_of_the_location_stood_on():
     logits[2, 0, 2 * 2 + 1 + 2] = 5.0  # and at location 1 at t=2 (a first visit: wrong); "none" elsewhere
     logits[1:, 0, 2 * 2 + 1] = 1.0
     scores = memory_scores(logits, walks, n_loops=2)
-    assert scores == {"due_recalled": 0.5, "first_visits_recognised": 0.0, "due_visits": 2, "other_visits": 1,
-                      "action_precision": 0.5, "action_recall": 0.5}
+    assert scores == {
+        "due_recalled": 0.5,
+        "first_visits_recognised": 0.0,
+        "due_visits": 2,
+        "other_visits": 1,
+        "action_precision": 0.5,
+        "action_recall": 0.5,
+    }
 
 
 def test_pretraining_teaches_the_lstm_the_visit_memory_and_starts_the_critic_with_it():
-    trainer = Trainer(TrainConfig(map="config1", n_envs=2, minibatches=2, threads=1,
-                                  aux_targets="visited+place+action"))
+    trainer = Trainer(
+        TrainConfig(map="config1", n_envs=2, minibatches=2, threads=1, aux_targets="visited+place+action")
+    )
     untouched_head = trainer.actor.head.weight.detach().clone()
     cfg = PretrainConfig(epochs=12, walks=96, length=64, held_out=24, seed=0)
     pretrainer = MemoryPretrainer(trainer, cfg)
@@ -79,8 +85,9 @@ def test_pretraining_needs_the_auxiliary_head_with_its_action_classifier():
 
 
 def test_policy_from_aux_starts_the_policy_as_the_action_classifier():
-    trainer = Trainer(TrainConfig(map="config2", n_envs=2, minibatches=2, threads=1,
-                                  aux_targets="visited+place+action"))
+    trainer = Trainer(
+        TrainConfig(map="config2", n_envs=2, minibatches=2, threads=1, aux_targets="visited+place+action")
+    )
     MemoryPretrainer(trainer, PretrainConfig(epochs=1, walks=8, length=32, held_out=2, policy_from_aux=True)).run()
     walks = record_walks(trainer.grid, n=3, length=40, seed=77)
     actor = trainer.actor
@@ -99,10 +106,34 @@ def test_policy_from_aux_starts_the_policy_as_the_action_classifier():
 
 def test_train_lc_pretrains_then_runs_ppo_and_records_the_pretraining_and_the_loss_balance(tmp_path):
     out = tmp_path / "p.onnx"
-    args = [sys.executable, "-m", "service", "train-lc", "--map", "config1", "--steps", "200", "--envs", "2",
-            "--b1", "16", "--b2", "48", "--aux-targets", "visited+place+action", "--pretrain-epochs", "2",
-            "--pretrain-walks", "16", "--pretrain-length", "48", "--balance-first-visits", "--pretrain-policy",
-            "--out", str(out)]
+    args = [
+        sys.executable,
+        "-m",
+        "service",
+        "train-lc",
+        "--map",
+        "config1",
+        "--steps",
+        "200",
+        "--envs",
+        "2",
+        "--b1",
+        "16",
+        "--b2",
+        "48",
+        "--aux-targets",
+        "visited+place+action",
+        "--pretrain-epochs",
+        "2",
+        "--pretrain-walks",
+        "16",
+        "--pretrain-length",
+        "48",
+        "--balance-first-visits",
+        "--pretrain-policy",
+        "--out",
+        str(out),
+    ]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     res = subprocess.run(args, env=env, capture_output=True, text=True, timeout=240)
     assert res.returncode == 0, res.stderr[-2000:]
@@ -115,7 +146,7 @@ def test_train_lc_pretrains_then_runs_ppo_and_records_the_pretraining_and_the_lo
     bad = subprocess.run([*args, "--resume"], env=env, capture_output=True, text=True, timeout=120)
     assert bad.returncode == 1 and "--resume" in bad.stderr
     at = args.index("--pretrain-epochs")
-    no_pretraining = args[:at] + args[at + 2:]
+    no_pretraining = args[:at] + args[at + 2 :]
     bad = subprocess.run(no_pretraining, env=env, capture_output=True, text=True, timeout=120)
     assert bad.returncode == 1 and "--pretrain-policy needs --pretrain-epochs" in bad.stderr
     resume = [sys.executable, "-m", "service", "train-lc", "--steps", "400", "--resume", "--out", str(out)]

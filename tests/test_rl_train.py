@@ -21,8 +21,9 @@ from rl.ppo import TrainConfig, Trainer, balance_weights, batch_length  # noqa: 
 
 def _objslam(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    return subprocess.run([sys.executable, "-m", "service", *args], env=env, capture_output=True, text=True,
-                          timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "service", *args], env=env, capture_output=True, text=True, timeout=timeout
+    )
 
 
 def test_batch_length_picks_the_prefix_with_most_action_entropy():
@@ -50,8 +51,9 @@ def test_balance_weights_give_each_kind_of_step_equal_total_weight():
 
 def test_train_lc_smoke_run_exports_a_policy_that_eval_lc_reads(tmp_path):
     out = tmp_path / "p.onnx"
-    res = _objslam("train-lc", "--map", "config1", "--steps", "400", "--envs", "2", "--b1", "16", "--b2", "48",
-                   "--out", str(out))
+    res = _objslam(
+        "train-lc", "--map", "config1", "--steps", "400", "--envs", "2", "--b1", "16", "--b2", "48", "--out", str(out)
+    )
     assert res.returncode == 0, res.stderr[-2000:]
     for suffix in (".onnx", ".json", ".pt", ".png"):
         assert out.with_suffix(suffix).is_file(), suffix
@@ -104,8 +106,9 @@ def test_onnx_actor_matches_torch_on_recorded_sequences(tmp_path):
 
 
 def test_buffer_stores_the_visited_targets_across_episode_ends():
-    cfg = TrainConfig(map="config2", total_steps=10_000, n_envs=2, minibatches=2, b1=8, b2=96, threads=1,
-                      max_episode_steps=30)  # several episodes end inside one buffer
+    cfg = TrainConfig(
+        map="config2", total_steps=10_000, n_envs=2, minibatches=2, b1=8, b2=96, threads=1, max_episode_steps=30
+    )  # several episodes end inside one buffer
     trainer = Trainer(cfg)
     trainer.collect()
     b = trainer.buffer
@@ -147,8 +150,9 @@ def test_aux_loss_trains_the_aux_head_and_the_lstm_but_not_the_policy_head():
     assert not torch.equal(before["aux_head.weight"], after["aux_head.weight"])
     assert not torch.equal(before["lstm.weight_hh_l0"], after["lstm.weight_hh_l0"])
 
-    plain = Trainer(TrainConfig(map="config2", total_steps=100, n_envs=2, minibatches=2, b1=8, b2=24, threads=1,
-                                aux_coef=0.0))
+    plain = Trainer(
+        TrainConfig(map="config2", total_steps=100, n_envs=2, minibatches=2, b1=8, b2=24, threads=1, aux_coef=0.0)
+    )
     assert plain.actor.aux_head is None and not any(k.startswith("aux") for k in plain.actor.state_dict())
     plain.train()
     assert all(row["aux_loss"] == 0.0 for row in plain.curve)
@@ -170,8 +174,16 @@ def test_resume_of_a_checkpoint_saved_before_the_aux_loss(tmp_path):
 
 
 def test_place_and_action_aux_targets_and_a_warm_start_from_a_smaller_map(tmp_path):
-    cfg = TrainConfig(map="config2", total_steps=200, n_envs=2, minibatches=2, b1=8, b2=24, threads=1,
-                      aux_targets="visited+place+action")
+    cfg = TrainConfig(
+        map="config2",
+        total_steps=200,
+        n_envs=2,
+        minibatches=2,
+        b1=8,
+        b2=24,
+        threads=1,
+        aux_targets="visited+place+action",
+    )
     trainer = Trainer(cfg)
     L = trainer.grid.n_loops
     assert trainer.actor.aux_head.out_features == L + 2 * (L + 1)  # visit bits, location classes, action classes
@@ -180,8 +192,19 @@ def test_place_and_action_aux_targets_and_a_warm_start_from_a_smaller_map(tmp_pa
     b = trainer.buffer
     assert ((b.loop >= -1) & (b.loop < L)).all() and np.array_equal(b.at_loop, b.loop >= 0)
 
-    bigger = Trainer(TrainConfig(map="config3", total_steps=100, n_envs=2, minibatches=2, b1=8, b2=24, threads=1,
-                                 aux_targets="visited+place+action", init_from=str(tmp_path / "small.pt")))
+    bigger = Trainer(
+        TrainConfig(
+            map="config3",
+            total_steps=100,
+            n_envs=2,
+            minibatches=2,
+            b1=8,
+            b2=24,
+            threads=1,
+            aux_targets="visited+place+action",
+            init_from=str(tmp_path / "small.pt"),
+        )
+    )
     small = torch.load(tmp_path / "small.pt", weights_only=False)["actor"]
     own = bigger.actor.state_dict()
     assert torch.equal(own["lstm.weight_hh_l0"], small["lstm.weight_hh_l0"])  # shared shapes copied
@@ -196,8 +219,11 @@ def test_the_shipped_init_checkpoint_starts_a_trainer_for_another_map():
 
     path = POLICY_DIR / INIT_CHECKPOINT
     shipped = torch.load(path, weights_only=False)
-    trainer = Trainer(TrainConfig(map="config3", total_steps=100, n_envs=2, minibatches=2, b1=8, b2=24, threads=1,
-                                  init_from=str(path)))
+    trainer = Trainer(
+        TrainConfig(
+            map="config3", total_steps=100, n_envs=2, minibatches=2, b1=8, b2=24, threads=1, init_from=str(path)
+        )
+    )
     own = trainer.actor.state_dict()
     assert torch.equal(own["lstm.weight_hh_l0"], shipped["actor"]["lstm.weight_hh_l0"])
     assert torch.equal(trainer.critic.state_dict()["lstm.weight_hh_l0"], shipped["critic"]["lstm.weight_hh_l0"])

@@ -14,8 +14,8 @@ from service.config import load_settings
 from service.node import ServiceNode
 from service.protocol import encode_frame
 from service.replay import frame_publisher
-from sources import open_dataset
 from service.zenoh_session import open_session
+from sources import open_dataset
 
 FIXTURE = Path(__file__).parent / "fixtures" / "state_v0.1.0"
 
@@ -35,8 +35,9 @@ def test_a_state_dir_of_release_0_1_0_resumes_exactly_and_continues(tmp_path):
         trajectory, _ = node.trajectories()
         assert [repr(float(t)) for t in trajectory.timestamps] == expected["timestamps"]
         assert [[repr(float(v)) for v in T.ravel()] for T in trajectory.poses] == expected["poses"]
-        loops = [{k: r[k] for k in ("query_frame", "match_frame", "accepted", "reason")}
-                 for r in node.loops_reply()["loops"]]
+        loops = [
+            {k: r[k] for k in ("query_frame", "match_frame", "accepted", "reason")} for r in node.loops_reply()["loops"]
+        ]
         assert loops == expected["loops"] and any(r["accepted"] for r in loops)
         assert sorted(o["id"] for o in node.objects_reply()["objects"]) == expected["objects"]
 

@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
+from graph.trajectory import nearest_timestamps
 from service.config import load_settings
 from sources import DatasetError, open_dataset
-from graph.trajectory import nearest_timestamps
 from tests.conftest import REDKITCHEN, requires_redkitchen
 
 
@@ -37,8 +37,9 @@ def _write_tum(root, n=5, camera=True, odometry=True, detections=True):
     if detections:
         (root / "detections.jsonl").write_text("\n".join(det_lines[:-1]) + "\n")  # last frame: none
     if camera:
-        (root / "camera.json").write_text(json.dumps({"fx": 50, "fy": 51, "cx": 32, "cy": 24, "width": 64,
-                                                      "height": 48, "depth_scale": 1000}))
+        (root / "camera.json").write_text(
+            json.dumps({"fx": 50, "fy": 51, "cx": 32, "cy": 24, "width": 64, "height": 48, "depth_scale": 1000})
+        )
 
 
 def test_nearest_timestamps_picks_nearest_within_tolerance():
@@ -68,12 +69,14 @@ def test_views_drop_the_odometry_or_replace_it_with_the_ground_truth(tmp_path):
     _write_tum(tmp_path)
     with pytest.raises(DatasetError, match="no ground truth"):
         TruthAsOdometry(open_dataset(str(tmp_path)))
-    (tmp_path / "groundtruth.txt").write_text("".join(f"{100.0 + i * 0.033:.6f} 0 {0.5 * i} 0 0 0 0 1\n"
-                                                      for i in range(4)))
+    (tmp_path / "groundtruth.txt").write_text(
+        "".join(f"{100.0 + i * 0.033:.6f} 0 {0.5 * i} 0 0 0 0 1\n" for i in range(4))
+    )
     with pytest.raises(DatasetError, match="1 frames have no ground-truth pose"):
         TruthAsOdometry(open_dataset(str(tmp_path)))
-    (tmp_path / "groundtruth.txt").write_text("".join(f"{100.0 + i * 0.033:.6f} 0 {0.5 * i} 0 0 0 0 1\n"
-                                                      for i in range(5)))
+    (tmp_path / "groundtruth.txt").write_text(
+        "".join(f"{100.0 + i * 0.033:.6f} 0 {0.5 * i} 0 0 0 0 1\n" for i in range(5))
+    )
     ds = open_dataset(str(tmp_path))
     truth, without = TruthAsOdometry(ds), WithoutOdometry(ds)
     assert truth.has_odometry and not without.has_odometry and len(truth) == len(without) == 5
@@ -114,7 +117,7 @@ def test_missing_and_malformed_directories_give_clear_errors(tmp_path):
     with pytest.raises(DatasetError, match="associations.txt"):
         open_dataset(str(tmp_path))
     _write_tum(tmp_path / "d")
-    (tmp_path / "d" / "camera.json").write_text("{\"fx\": 1}")
+    (tmp_path / "d" / "camera.json").write_text('{"fx": 1}')
     with pytest.raises(DatasetError, match="camera.json"):
         open_dataset(str(tmp_path / "d"))
 

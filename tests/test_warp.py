@@ -9,9 +9,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from graph.geometry import inverse
-from perception.features import (FeatureConfig, backproject_detection, detection_feature, dominant_depth_mask,
-                                 object_points, support_plane,
-                                 feature_from_points)
+from perception.features import (
+    FeatureConfig,
+    backproject_detection,
+    detection_feature,
+    dominant_depth_mask,
+    feature_from_points,
+    object_points,
+    support_plane,
+)
 from perception.warp import needs_warp, warp_box, warp_depth
 from sources import open_dataset
 

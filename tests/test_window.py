@@ -10,20 +10,20 @@ import numpy as np
 import pytest
 from gtsam.symbol_shorthand import L, X
 
+from bench import isam2 as sim
+from evaluation.trajectory_metrics import trajectory_error
 from graph.factors import LANDMARK, FactorRecord
 from graph.geometry import relative
-from evaluation.trajectory_metrics import trajectory_error
 from graph.pose_graph import NoiseSettings, PoseGraph
 from graph.window import WindowedGraph, WindowSettings
-from bench import isam2 as sim
 from service.config import load_settings
 from service.node import ServiceNode
-from service.replay import frame_publisher
 from service.persistence import decode, encode, seal, unseal
-from slam.core import Pipeline
 from service.protocol import encode_frame
-from sources import open_dataset
+from service.replay import frame_publisher
 from service.zenoh_session import open_session
+from slam.core import Pipeline
+from sources import open_dataset
 
 
 def _explore(graph, n: int, seed: int = 0, landmarks: int = 40) -> list[np.ndarray]:
@@ -40,8 +40,9 @@ def _explore(graph, n: int, seed: int = 0, landmarks: int = 40) -> list[np.ndarr
         if k == 0:
             graph.add_first(T)
         else:
-            graph.add_keyframe(sim._noisy(relative(world.poses[k - 1], T), *sim.ODOMETRY_SIGMA, rng),
-                               *sim.ODOMETRY_SIGMA)
+            graph.add_keyframe(
+                sim._noisy(relative(world.poses[k - 1], T), *sim.ODOMETRY_SIGMA, rng), *sim.ODOMETRY_SIGMA
+            )
         if seen:
             graph.add_landmark_observations(k, seen, sim.LANDMARK_SIGMA_M)
         if match is not None:
@@ -69,8 +70,11 @@ def test_below_the_window_it_is_the_whole_graph_update_for_update(windowed):
     _explore(full, 300)
     _explore(window, 300)
     assert window.start == 0 and window._global is None  # never rolled: no child process
-    assert (window.num_keyframes, window.num_factors, window.updates) == (full.num_keyframes, full.num_factors,
-                                                                           full.updates)
+    assert (window.num_keyframes, window.num_factors, window.updates) == (
+        full.num_keyframes,
+        full.num_factors,
+        full.updates,
+    )
     np.testing.assert_allclose(window.poses(), full.poses(), atol=1e-9)
     assert window.landmarks().keys() == full.landmarks().keys()
     for j, p in full.landmarks().items():
@@ -133,7 +137,7 @@ def test_a_loop_to_a_fixed_keyframe_pulls_the_window_at_once_and_can_be_retracte
     for a, b in zip(true[:-1], true[1:]):
         g.add_keyframe(relative(a, b) @ drift, 0.01, 0.5)
     assert g.start > 100
-    error = lambda: np.linalg.norm(g.pose(200)[:3, 3] - true[200][:3, 3])  # noqa: E731
+    error = lambda: np.linalg.norm(g.pose(200)[:3, 3] - true[200][:3, 3])
     before = error()
     index = g.add_loop(0, 200, relative(true[0], true[200]), 0.01, 0.5)
     pulled = error()
@@ -179,7 +183,7 @@ def _run(window: int, step: int):
             p.process(frame)
         p.finish()
         truth = ds.ground_truth.poses
-        return p, trajectory_error(p.trajectory().poses, truth[:len(p.records)]), p.graph.start
+        return p, trajectory_error(p.trajectory().poses, truth[: len(p.records)]), p.graph.start
     finally:
         p.close()
 
@@ -224,8 +228,9 @@ def test_a_service_snapshot_of_a_rolled_window_restores_the_trajectory_exactly()
 
 def test_status_shows_where_the_window_starts_and_the_whole_graph_solves():
     """A service over an embedded zenoh session, frames published to it, status read from its summary."""
-    settings = load_settings(None, {"detector": {"enabled": False}, "robot": "wtest",
-                                    "graph": {"window_keyframes": 10, "window_step": 3}})
+    settings = load_settings(
+        None, {"detector": {"enabled": False}, "robot": "wtest", "graph": {"window_keyframes": 10, "window_step": 3}}
+    )
     session = open_session(settings.zenoh, "server", embedded=True)
     node = ServiceNode(settings, session)
     try:
@@ -284,8 +289,10 @@ def test_a_landmark_measured_from_a_fixed_keyframe_becomes_a_world_prior_with_th
     T = g.pose(fixed)
     landmark = T[:3, :3] @ record.measurement + T[:3, 3]
     errors = {}
-    for name, ray in (("along", T[:3, :3] @ record.measurement / np.linalg.norm(record.measurement)),
-                      ("across", T[:3, :3] @ np.array([1.0, 0.0, -0.2]) / np.linalg.norm([1.0, 0.0, -0.2]))):
+    for name, ray in (
+        ("along", T[:3, :3] @ record.measurement / np.linalg.norm(record.measurement)),
+        ("across", T[:3, :3] @ np.array([1.0, 0.0, -0.2]) / np.linalg.norm([1.0, 0.0, -0.2])),
+    ):
         moved = landmark + 0.002 * ray
         values = gtsam.Values()
         values.insert(X(fixed), gtsam.Pose3(T))
