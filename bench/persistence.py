@@ -16,7 +16,10 @@ import numpy as np
 from bench.report import markdown_table, record, show_table
 from service.config import load_settings
 from service.persistence import Persistence
-from slam.core import Pipeline
+from service.scheduler import ThreadedRunner
+from slam.build import build_core
+from slam.core import SlamCore
+from slam.snapshot import core_state, restore_core
 from sources import open_dataset
 
 HEADER = [
@@ -38,13 +41,13 @@ def measure(dataset: str, checkpoints: list[int]) -> list[list[object]]:
     """One row per checkpoint (number of keyframes) reached while processing ``dataset``."""
     settings = load_settings()
     data = open_dataset(dataset)
-    pipeline = Pipeline(settings)
+    pipeline = build_core(settings)
     rows: list[list[object]] = []
     todo = sorted(checkpoints)
     with tempfile.TemporaryDirectory() as tmp:
         store = Persistence(Path(tmp), settings.robot)
         for i in range(len(data)):
-            pipeline.process(data.frame(i))
+            pipeline.step(data.frame(i))
             if not todo or pipeline.graph.num_keyframes < todo[0]:
                 continue
             todo.pop(0)
@@ -54,12 +57,12 @@ def measure(dataset: str, checkpoints: list[int]) -> list[list[object]]:
     return rows
 
 
-def _checkpoint(settings, pipeline: Pipeline, store: Persistence, frames: int) -> list[object]:
+def _checkpoint(settings, pipeline: SlamCore, store: Persistence, frames: int) -> list[object]:
     keyframes = pipeline.graph.num_keyframes
     state_s, capture_s, write_s, load_s, restore_s = [], [], [], [], []
     for _ in range(REPEATS):
         t0 = time.perf_counter()
-        state = {"pipeline": pipeline.state()}
+        state = {"pipeline": core_state(pipeline)}
         t1 = time.perf_counter()
         payload = store.capture(keyframes, frames, state)
         t2 = time.perf_counter()
@@ -71,7 +74,7 @@ def _checkpoint(settings, pipeline: Pipeline, store: Persistence, frames: int) -
         t0 = time.perf_counter()
         snap = next(store.store.candidates([]))[1]
         t1 = time.perf_counter()
-        restored = Pipeline.from_state(settings, snap["state"]["pipeline"])
+        restored = restore_core(settings, snap["state"]["pipeline"])
         load_s.append(t1 - t0)
         restore_s.append(time.perf_counter() - t1)
     same = bool(np.array_equal(restored.trajectory().poses, pipeline.trajectory().poses))

@@ -12,7 +12,9 @@ from rich.console import Console
 from bench.report import StealMeter, markdown_table, record, show_table
 from service.config import load_settings
 from service.run import run_dataset
-from slam.core import Pipeline
+from service.scheduler import ThreadedRunner
+from slam.build import build_core
+from slam.snapshot import core_state, restore_core
 from sources import WithoutOdometry, open_dataset
 
 MAPPING_RUNS = 3  # keyframe-mapping rate: median of this many runs (the shared host's steal varies)
@@ -77,13 +79,13 @@ def keyframe_mapping_rate(dataset: str, frames: int, every: int, background: boo
         if frame.odometry is None and truth is not None:
             frame.odometry = truth.poses[frame.seq]
     settings = load_settings(None, {"loops": {"source": "off"}, "keyframes": {"max_interval": 1}})
-    pipeline = Pipeline(settings, background=background)
+    pipeline = build_core(settings, ThreadedRunner() if background else None)
     try:
-        pipeline.process(keyframes[0])  # loads the detector
+        pipeline.step(keyframes[0])  # loads the detector
         pipeline.flush()
         t0 = time.perf_counter()
         for frame in keyframes[1:]:
-            pipeline.process(frame)
+            pipeline.step(frame)
         pipeline.flush()
         return (len(keyframes) - 1) / (time.perf_counter() - t0)
     finally:

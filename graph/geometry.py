@@ -59,3 +59,9 @@ def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
         and abs(np.linalg.det(R) - 1.0) < tol
         and np.allclose(T[3], [0, 0, 0, 1], atol=tol)
     )
+
+
+def rotation_angles_between(Ra: np.ndarray, Rb: np.ndarray) -> np.ndarray:
+    """Angles in radians between rotation pairs (N, 3, 3): ``||log(Ra_i^T Rb_i)||`` for each i, batched."""
+    c = (np.einsum("nij,nij->n", Ra, Rb) - 1.0) / 2.0
+    return np.arccos(np.clip(c, -1.0, 1.0))

@@ -14,10 +14,10 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from graph.errors import SolverError
 from graph.pose_graph import PoseGraph
@@ -28,30 +28,34 @@ log = logging.getLogger(__name__)
 Key = tuple[int, int]  # (keyframe, track id)
 
 
-@dataclass(frozen=True)
-class LandmarkConfig:
-    """How objects enter the graph (``objects`` section of the configuration)."""
+class LandmarkSettings(BaseModel):
+    """How objects enter the graph (fields of the ``objects`` settings section)."""
 
-    landmark_sigma_m: float = 0.1
-    """Isotropic sigma of a centroid measurement: the visible surface's centroid moves with the viewpoint."""
-    landmark_huber_k: float | None = 1.345
-    """Huber kernel on each measurement (None = Gaussian): a wrong association must not bend the trajectory."""
-    landmark_min_support: int = 5
-    """An object becomes a landmark once its cluster pools this many feature vectors."""
-    landmark_extent_scale: float = 1.0
-    """A measurement's sigma is at least this times the largest std of its points: the visible surface's
-    centroid of a large object moves with the viewpoint by about its extent."""
-    landmark_range_scale: float = 3.0
-    """The sigma along the viewing ray is this times the sigma across it. The centroid of the visible surface
-    lies between the camera and the object's centre, by up to the object's depth: with a tight range every
-    view pulls the camera towards the object, which shrinks the map around its objects."""
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    landmark_sigma_m: float = Field(
+        0.1, gt=0, description="sigma of an object centroid measurement (m): the visible surface's centroid moves "
+        "with the viewpoint"
+    )
+    landmark_huber_k: float | None = Field(
+        1.345, gt=0, description="Huber kernel of object measurements; null = none (a wrong association must not "
+        "bend the trajectory)"
+    )
+    landmark_min_support: int = Field(5, ge=1, description="feature vectors an object needs to become a landmark")
+    landmark_extent_scale: float = Field(
+        1.0, ge=0, description="a measurement's sigma is at least this times the largest std of the object's points"
+    )
+    landmark_range_scale: float = Field(
+        3.0, ge=1, description="sigma along the viewing ray = this times the sigma across it: the visible surface's "
+        "centroid lies short of the object's"
+    )
 
 
 class ObjectLandmarks:
     """Keeps the graph's object landmarks in step with the clustering."""
 
-    def __init__(self, graph: PoseGraph | WindowedGraph, config: LandmarkConfig = LandmarkConfig()):
-        self.graph, self.config = graph, config
+    def __init__(self, graph: PoseGraph | WindowedGraph, config: LandmarkSettings | None = None):
+        self.graph, self.config = graph, config or LandmarkSettings()
         self.measurements: dict[Key, np.ndarray] = {}  # (x, y, z, sigma)
         self.assigned: dict[Key, tuple[int, int | None]] = {}  # -> (landmark, factor index; None while waiting)
         self.track_landmark: dict[int, int] = {}

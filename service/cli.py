@@ -80,13 +80,14 @@ def _camera_overrides(**values: float | None) -> dict[str, float]:
 def _with_lc(settings: Settings, lc_source: LcSource | None, lc_policy: Path | None) -> Settings:
     """Apply ``--lc-source`` and ``--lc-policy``; the policy sources need a policy file."""
     source = lc_source.value if lc_source is not None else settings.loops.source
+    policy = settings.loops.policy
     if lc_policy is not None:
         if not lc_policy.is_file() or not lc_policy.with_suffix(".json").is_file():
             raise UserError(f"--lc-policy {lc_policy}: needs FILE.onnx and FILE.json (from train-lc)")
-        settings.loops.policy = lc_policy
-    if source in ("policy", "both") and settings.loops.policy is None:
+        policy = lc_policy
+    if source in ("policy", "both") and policy is None:
         raise UserError(f"--lc-source {source} needs --lc-policy FILE.onnx (train one with train-lc --from-map)")
-    settings.loops.source = source
+    settings.loops = settings.loops.model_copy(update={"source": source, "policy": policy})
     return settings
 
 

@@ -12,6 +12,8 @@ import yaml
 from pydantic import BaseModel, Field, ValidationError
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
+from loops.settings import LoopSettings
+from slam.settings import ObjectSettings
 from sources.tum import CameraDefaults
 
 
@@ -70,32 +72,6 @@ class OdometrySettings(BaseModel):
     sigma_deg_coeff: float = Field(3.0, gt=0, description="factor rotation sigma = coeff / sqrt(inliers)")
 
 
-class LoopSettings(BaseModel):
-    """Loop-closure candidates and their geometric verification."""
-
-    source: Literal["off", "appearance", "policy", "both"] = "appearance"
-    policy: Path | None = Field(None, description="RL policy FILE.onnx (train-lc --from-map) for source policy/both")
-    policy_radius: int = Field(1, ge=0, description="policy candidates: keyframes within this many cells")
-    policy_candidates: int = Field(3, ge=1, description="policy candidates verified per proposal at most")
-    min_gap_s: float = Field(5.0, ge=0, description="candidates are at least this much older")
-    top_k: int = Field(3, ge=1)
-    min_similarity: float = Field(0.5, ge=-1, le=1, description="global descriptor cosine similarity")
-    min_inliers: int = Field(40, ge=6)
-    max_residual_px: float = Field(2.0, gt=0)
-    max_loop_m: float = Field(0.25, gt=0, description="a loop closure joins views at most this far apart")
-    max_loop_deg: float = Field(17.0, gt=0, description="... and at most this much rotated")
-    gate_m: float = Field(0.5, gt=0, description="max disagreement with the current estimate")
-    gate_deg: float = Field(20.0, gt=0)
-    retract_m: float = Field(0.15, gt=0, description="accepted loops disagreeing more are retracted")
-    retract_deg: float = Field(5.0, gt=0)
-    proximity: bool = Field(True, description="also verify old keyframes near the current pose estimate")
-    proximity_m: float = Field(0.3, gt=0)
-    proximity_deg: float = Field(25.0, gt=0)
-    proximity_k: int = Field(2, ge=1)
-    sigma_floor_m: float = Field(0.01, gt=0, description="loop factor translation sigma at least")
-    sigma_floor_deg: float = Field(0.5, gt=0)
-
-
 class DetectorSettings(BaseModel):
     """The ONNX object detector (SPEC 6.1), used on keyframes whose frames carry no detections."""
 
@@ -112,32 +88,6 @@ class DetectorSettings(BaseModel):
         description="centernet: a 512-wide input as high as the image's aspect needs "
         "(512 x 384 for 4:3) instead of the letterboxed 512 x 512: faster, fewer detections",
     )
-
-
-class ObjectSettings(BaseModel):
-    """Object association (NPDA), tracks and clustering on keyframes (defaults from `objslam bench association`),
-    objects as landmarks of the pose graph, and re-clustering after optimisations (SPEC 6.8)."""
-
-    enabled: bool = True
-    landmarks: bool = Field(True, description="stable objects become Point3 landmarks of the iSAM2 graph")
-    landmark_sigma_m: float = Field(0.1, gt=0, description="sigma of an object centroid measurement (m)")
-    landmark_huber_k: float | None = Field(1.345, gt=0, description="Huber kernel of object measurements; null = none")
-    landmark_min_support: int = Field(5, ge=1, description="feature vectors an object needs to become a landmark")
-    landmark_extent_scale: float = Field(
-        1.0, ge=0, description="a measurement's sigma is at least this times the largest std of the object's points"
-    )
-    landmark_range_scale: float = Field(
-        3.0,
-        ge=1,
-        description="sigma along the viewing ray = this times the sigma "
-        "across it: the visible surface's centroid lies short of the object's",
-    )
-    repose_m: float = Field(
-        0.01,
-        gt=0,
-        description="re-pose and re-cluster objects once an optimisation has moved an observing keyframe this far (m)",
-    )
-    repose_deg: float = Field(0.5, gt=0, description="... or turned it this much (degrees)")
 
 
 class GraphSettings(BaseModel):

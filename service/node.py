@@ -1,11 +1,11 @@
-"""The service node: zenoh subscriber and queryables wired to the ingest queue and the pipeline.
+"""The service node: zenoh subscriber and queryables wired to the ingest queue and the SLAM core.
 
 Zenoh callbacks only enqueue bytes or serialise a reply. A decoder thread takes raw messages from the ingest
 queue and validates and decodes them (PNG/JPEG decoding releases the GIL), handing at most two decoded frames
-to the worker thread, which runs the pipeline: decoding the next frame overlaps processing this one.
+to the worker thread, which runs the SLAM core: decoding the next frame overlaps processing this one.
 After each frame the worker publishes an immutable ``MapSummary`` (counts, objects, loop records) that the
-``status``, ``objects`` and ``loops`` queryables read without waiting for the pipeline; only ``trajectory``
-(the optimised poses, computed on demand) takes the pipeline lock.
+``status``, ``objects`` and ``loops`` queryables read without waiting for the SLAM core; only ``trajectory``
+(the optimised poses, computed on demand) takes the SLAM core lock.
 With a state directory the node resumes from its newest good snapshot and writes one every N keyframes
 (on the worker thread, between frames) and on ``stop``.
 """
@@ -35,7 +35,9 @@ from service.outputs import run_summary, write_outputs
 from service.persistence import Persistence
 from service.protocol import VERSION, FrameRejected, Limits, decode_frame
 from service.stats import ServiceStats
-from slam.core import Pipeline
+from service.scheduler import ThreadedRunner
+from slam.build import build_core
+from slam.snapshot import core_state, restore_core
 
 log = logging.getLogger(__name__)
 
@@ -63,9 +65,9 @@ class ServiceNode:
         self.prefix = settings.key_prefix
         self.queue = IngestQueue(settings.ingest.queue_size)
         self.stats = ServiceStats()
-        self.pipeline = Pipeline(settings, background=True)  # keyframe mapping on the mapping thread
+        self.core = build_core(settings, ThreadedRunner())  # keyframe stages on the scheduler's threads
         self.limits = Limits(settings.ingest.max_payload_bytes, settings.ingest.max_image_pixels)
-        self._lock = threading.Lock()  # guards the pipeline between the worker and the trajectory queryable
+        self._lock = threading.Lock()  # guards the SLAM core between the worker and the trajectory queryable
         self._summary_lock = threading.Lock()  # guards only the swap of ``_summary``
         self._summary = MapSummary()
         self._stop = threading.Event()
@@ -125,7 +127,7 @@ class ServiceNode:
         else:
             self._discard_queued()
             self.snapshot(final=True)
-            self.pipeline.close()
+            self.core.close()
         for entity in reversed(self._entities):
             self._undeclare(entity)
         self._entities.clear()
@@ -220,7 +222,7 @@ class ServiceNode:
         return frame
 
     def _work(self) -> None:
-        """Worker thread: decoded frames through the pipeline, one at a time; ``save`` requests between them."""
+        """Worker thread: decoded frames through the SLAM core, one at a time; ``save`` requests between them."""
         while not self._stop.is_set():
             if not self._save_requests.empty():
                 self._answer_saves()
@@ -244,9 +246,7 @@ class ServiceNode:
         t1 = time.monotonic()
         try:
             with self._lock:
-                self.pipeline.timings.clear()
-                self.pipeline.process(frame)
-                stage_times = dict(self.pipeline.timings)
+                stage_times = self.core.step(frame).timings
             t2 = time.monotonic()
         except FrameRejected as exc:
             self.stats.count_rejected(exc.reason.value)
@@ -269,14 +269,14 @@ class ServiceNode:
     def snapshot(self, final: bool = False) -> bool:
         """Write a snapshot when N keyframes were added since the last one (or, ``final``, anything changed).
 
-        Called by the worker between frames, or after it stopped: no other thread changes the pipeline, so
+        Called by the worker between frames, or after it stopped: no other thread changes the SLAM core, so
         only taking its plain state needs the lock (iSAM2 updates a cache that queries read); pickling and
         writing run without it. A failed write is logged and counted (``persistence.failed_writes``).
         """
         p = self.persistence
         if p is None:
             return False
-        keyframes, frames, completed = self.pipeline.graph.num_keyframes, self.stats.processed, self.completed
+        keyframes, frames, completed = self.core.graph.num_keyframes, self.stats.processed, self.completed
         changed = p.changed(keyframes, frames) or completed != self._saved_completed  # rejected, dropped frames too
         if not (p.due(keyframes) or (final and changed)):
             return False
@@ -292,14 +292,14 @@ class ServiceNode:
         return True
 
     def _state(self) -> dict[str, Any]:
-        """The pipeline and the frame counters. Frames still queued are not in the pipeline's state, so the
+        """The SLAM core and the frame counters. Frames still queued are not in the core's state, so the
         saved ``received`` counts only the frames the state accounts for."""
         stats = self.stats.counters()
         stats["received"] = (
             stats["processed"] + sum(stats["rejected"].values()) + sum(stats["errors"].values()) + self.queue.dropped
         )
         return {
-            "pipeline": self.pipeline.state(),
+            "pipeline": core_state(self.core),
             "stats": stats,
             "frames_dropped": self.queue.dropped,
             "settings": _map_settings(self.settings),
@@ -313,14 +313,14 @@ class ServiceNode:
             log.warning(
                 "resuming a map made with other settings of %s; the current ones apply from now on", ", ".join(changed)
             )
-        pipeline = Pipeline.from_state(self.settings, state["pipeline"], background=True)
-        self.pipeline.close()
-        self.pipeline = pipeline
+        core = restore_core(self.settings, state["pipeline"], ThreadedRunner())
+        self.core.close()
+        self.core = core
         self.stats.restore_counters(state["stats"])
         self.queue.dropped = state["frames_dropped"]
         self._saved_completed = self.completed
-        self._last_version = pipeline.object_map_version
-        self._accepted_loops = {r["factor"] for r in pipeline.loop_records() if r["accepted"]}
+        self._last_version = core.object_map_version
+        self._accepted_loops = {r.factor for r in core.loop_records() if r.accepted and r.factor is not None}
 
     def _publish_summary(self) -> None:
         """Take the map's counts, objects and loop records for the queryables (worker thread, between frames).
@@ -328,7 +328,7 @@ class ServiceNode:
         Objects and loop records are copied only when they changed, so a frame that changes neither costs a
         few attribute reads.
         """
-        p, old = self.pipeline, self._summary
+        p, old = self.core, self._summary
         graph = p.graph
         # landmark estimates move with every graph update; without landmarks only the object map version counts
         objects_key = (p.object_map_version, graph.updates if graph.num_landmarks else 0)
@@ -336,7 +336,7 @@ class ServiceNode:
         records = p.loops.records if p.loops is not None else []
         accepted = p.loops.n_accepted if p.loops is not None else 0
         key = (len(records), accepted)
-        loops = old.loops if key == old.loops_key else [dict(r) for r in records]
+        loops = old.loops if key == old.loops_key else [r.to_json() for r in records]
         counts = {
             "keyframes": graph.num_keyframes,
             "poses": graph.num_keyframes,
@@ -430,7 +430,7 @@ class ServiceNode:
         status = self.status()
         summary = run_summary(f"serve {self.prefix}", status["frames_received"], status["uptime_s"], status)
         with self._lock:  # iSAM2's estimate cache: not beside the worker (this may run on another thread)
-            cloud = self.pipeline.cloud()
+            cloud = self.core.cloud()
         return write_outputs(
             out, traj, odom, summary, None, self.objects_reply()["objects"], self.loops_reply()["loops"], cloud
         )
@@ -470,13 +470,13 @@ class ServiceNode:
     def finish(self) -> None:
         """End of a replayed sequence: final object clustering."""
         with self._lock:
-            self.pipeline.finish()
+            self.core.finish()
         self._publish_summary()
 
     def trajectories(self) -> tuple[Trajectory, Trajectory]:
         """(optimised, odometry) trajectories of every processed frame, taken consistently."""
         with self._lock:
-            return self.pipeline.trajectory(), self.pipeline.odometry_trajectory()
+            return self.core.trajectory(), self.core.odometry_trajectory()
 
     def objects_reply(self) -> dict[str, Any]:
         """Objects as ellipsoids (SPEC section 4 fields), as of the last processed frame."""

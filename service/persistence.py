@@ -40,8 +40,8 @@ FORMAT = 1
 _NAME = re.compile(r"^snapshot-(\d{8,})\.bin$")
 _OWN_PACKAGES = ("perception.", "graph.", "service.", "slam.", "loops.", "rl.", "sources.")
 MOVED = {
-    "service.pipeline": "slam.core",
-    "service.loop_closure": "loops.closer",
+    "service.pipeline": "slam.records",
+    "service.loop_closure": "loops.records",
     "perception.place_recognition": "loops.place_recognition",
 }
 """Modules whose dataclasses snapshots of earlier releases name (release 0.1.0 -> now)."""

@@ -65,7 +65,7 @@ def run_dataset(
         traj, odom = node.trajectories()
         objects = node.objects_reply()["objects"]
         return write_outputs(
-            out, traj, odom, summary, dataset.ground_truth, objects, node.loops_reply()["loops"], node.pipeline.cloud()
+            out, traj, odom, summary, dataset.ground_truth, objects, node.loops_reply()["loops"], node.core.cloud()
         )
     finally:
         node.stop()

@@ -41,7 +41,7 @@ def test_invalid_values_give_one_clear_error(tmp_path):
 def test_component_configs_take_the_same_named_settings():
     from perception.detector import DetectorConfig
     from perception.frontend import KeyframePolicy
-    from slam.core import from_settings
+    from slam.build import from_settings
 
     s = load_settings(None, {"keyframes": {"skip_edges": 4, "min_inliers": 90}, "detector": {"fit_aspect": True}})
     policy = from_settings(KeyframePolicy, s.keyframes, s.odometry)

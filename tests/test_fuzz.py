@@ -186,7 +186,7 @@ def test_a_solver_failure_does_not_stop_mapping(service):
     storm = Storm(SEED)
     sent = _send_good(node, pub, storm, 12, 0)
     before = _get(client, f"{node.prefix}/status")
-    window = node.pipeline.graph.local  # the iSAM2 window: the next keyframe's update fails
+    window = node.core.graph.local  # the iSAM2 window: the next keyframe's update fails
     window.isam = _FailingOnce(window.isam)
     _send_good(node, pub, storm, 30, sent)
     after = _get(client, f"{node.prefix}/status")

@@ -7,8 +7,11 @@ import pytest
 
 from graph.geometry import relative
 from graph.pose_graph import PoseGraph
-from loops.closer import KeyframeEntry, LoopCloser, LoopConfig
+from loops.acceptance import AcceptedLoop, LoopAcceptance
+from loops.closer import LoopCloser
 from loops.place_recognition import PlaceIndex, global_descriptor
+from loops.records import KeyframeEntry, LoopRecord
+from loops.settings import LoopSettings
 from perception.odometry import FeatureExtractor, RelativePoseEstimator
 from sources import open_dataset
 
@@ -18,7 +21,7 @@ def room():
     return open_dataset("synthetic:room?seed=0&frames=300")
 
 
-def _closer(room, i: int, j: int, claimed_offset_m: float = 0.0) -> tuple[LoopCloser, list[dict]]:
+def _closer(room, i: int, j: int, claimed_offset_m: float = 0.0) -> tuple[LoopCloser, list[LoopRecord]]:
     """Keyframes i and j in a graph whose relative pose is the truth plus an offset; returns j's records."""
     gt = room.ground_truth.poses
     graph = PoseGraph()
@@ -27,7 +30,7 @@ def _closer(room, i: int, j: int, claimed_offset_m: float = 0.0) -> tuple[LoopCl
     rel[:3, 3] += [claimed_offset_m, 0.0, 0.0]
     graph.add_keyframe(rel)
     fe = FeatureExtractor(room.camera)
-    config = LoopConfig(min_gap_s=0.0, min_similarity=-1.0, proximity=False)
+    config = LoopSettings(min_gap_s=0.0, min_similarity=-1.0, proximity=False)
     closer = LoopCloser(graph, RelativePoseEstimator(room.camera), config)
     fi, fj = room.frame(i), room.frame(j)
     closer.add_keyframe(KeyframeEntry(0, fi.timestamp, i, fe.extract(fi)), fi.rgb)
@@ -39,15 +42,16 @@ def test_true_revisit_is_verified_and_becomes_a_factor(room):
     closer, records = _closer(room, i, j)
     assert len(records) == 1
     r = records[0]
-    assert r["accepted"] and r["reason"] == "verified" and r["source"] == "appearance"
-    assert (r["match_frame"], r["query_frame"]) == (i, j) and r["inliers"] >= 40
-    assert r["translation_diff_m"] < 0.02 and closer.graph.num_factors == 3
+    assert r.accepted and r.reason == "verified" and r.source == "appearance"
+    assert (r.match_frame, r.query_frame) == (i, j) and r.inliers is not None and r.inliers >= 40
+    assert r.translation_diff_m is not None and r.translation_diff_m < 0.02 and closer.graph.num_factors == 3
+    assert r.to_json()["factor"] == r.factor and list(r.to_json())[-3:] == ["rotation_diff_deg", "reason", "factor"]
 
 
 def test_same_place_at_a_contradicting_pose_is_rejected_as_inconsistent(room):
     i, j = room.loops[len(room.loops) // 2]
     closer, records = _closer(room, i, j, claimed_offset_m=2.0)
-    assert not records[0]["accepted"] and records[0]["reason"] == "inconsistent_with_odometry"
+    assert not records[0].accepted and records[0].reason == "inconsistent_with_odometry"
     assert closer.graph.num_factors == 2  # nothing entered the graph
 
 
@@ -56,8 +60,9 @@ def test_different_places_are_rejected_by_geometry(room):
     dist = np.linalg.norm(gt[:, :3, 3] - gt[0, :3, 3], axis=1)
     far = int(np.argmax(dist))
     _, records = _closer(room, 0, far)
-    assert not records[0]["accepted"]
-    assert records[0]["reason"] in ("too_few_matches", "too_few_inliers")
+    assert not records[0].accepted
+    assert records[0].reason in ("too_few_matches", "too_few_inliers")
+    assert "residual_px" not in records[0].to_json()  # a candidate PnP rejected has no residual
 
 
 def test_place_index_respects_time_gap_and_ranks_by_similarity(room):
@@ -77,14 +82,14 @@ def test_an_accepted_loop_that_the_graph_contradicts_is_retracted(room):
     graph.add_first(gt[0])
     for a, b in ((0, 10), (10, 20)):
         graph.add_keyframe(relative(gt[a], gt[b]), 0.001, 0.05)  # confident odometry
-    closer = LoopCloser(graph, RelativePoseEstimator(room.camera), LoopConfig(retract_m=0.15))
+    acceptance = LoopAcceptance(graph, LoopSettings(retract_m=0.15))
     wrong = relative(gt[0], gt[20])
     wrong[:3, 3] += [0.5, 0.0, 0.0]
     factor = graph.add_loop(0, 2, wrong, 0.05, 2.0)
-    closer.accepted[factor] = (0, 2, wrong)
-    closer.records.append({"factor": factor, "accepted": True, "reason": "verified"})
+    acceptance.accepted[factor] = AcceptedLoop(0, 2, wrong)
+    acceptance.records.append(LoopRecord(0.0, 2.0, 0, 20, 0, 2, "appearance", True, reason="verified", factor=factor))
     factors = graph.num_factors
-    closer._recheck()
-    assert closer.records[0]["accepted"] is False and closer.records[0]["reason"] == "retracted_inconsistent"
-    assert factor not in closer.accepted and graph.num_factors == factors - 1
+    assert acceptance.recheck() == [factor]
+    assert acceptance.records[0].accepted is False and acceptance.records[0].reason == "retracted_inconsistent"
+    assert factor not in acceptance.accepted and graph.num_factors == factors - 1
     np.testing.assert_allclose(graph.pose(2), gt[20], atol=1e-3)

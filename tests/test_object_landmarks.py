@@ -10,13 +10,15 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from bench.association import load_scene
-from graph.object_landmarks import LandmarkConfig, ObjectLandmarks
+from graph.object_landmarks import LandmarkSettings, ObjectLandmarks
 from graph.pose_graph import PoseGraph
 from perception.clustering import ObjectEllipsoid
 from perception.features import FeatureConfig, transform_feature
 from perception.object_map import ObjectMapper
 from service.config import load_settings
-from slam.core import Pipeline
+from service.scheduler import ThreadedRunner
+from slam.build import build_core
+from slam.snapshot import core_state, restore_core
 from sources import open_dataset
 
 
@@ -93,7 +95,7 @@ def _obj(oid: int, tracks: set[int], n: int = 6) -> ObjectEllipsoid:
 def test_landmarks_follow_splits_merges_and_dropped_objects():
     g, poses = _chain(8)
     a, b = np.array([0.5, 0.2, 2.0]), np.array([-0.4, 0.1, 2.5])
-    lm = ObjectLandmarks(g, LandmarkConfig(landmark_sigma_m=0.01, landmark_huber_k=None, landmark_min_support=5))
+    lm = ObjectLandmarks(g, LandmarkSettings(landmark_sigma_m=0.01, landmark_huber_k=None, landmark_min_support=5))
     for k in range(4):  # tracks 1 and 2 see point a, track 3 sees point b
         lm.observe(k, [(1, _seen(poses[k], a), 0.0), (2, _seen(poses[k], a), 0.0), (3, _seen(poses[k], b), 0.0)])
     assert g.num_landmarks == 0 and not lm.assigned  # no stable object yet: measurements only kept
@@ -120,7 +122,7 @@ def test_landmarks_follow_splits_merges_and_dropped_objects():
 def test_a_measurement_still_waiting_is_withdrawn_when_its_track_moves():
     g, poses = _chain(4)
     p = np.array([0.0, 0.0, 2.0])
-    lm = ObjectLandmarks(g, LandmarkConfig(landmark_min_support=1))
+    lm = ObjectLandmarks(g, LandmarkSettings(landmark_min_support=1))
     lm.observe(0, [(7, _seen(poses[0], p), 0.05)])
     lm.sync([_obj(3, {7})])
     assert lm.assigned == {(0, 7): (3, None)} and g.num_landmarks == 0  # one keyframe: not observable yet
@@ -134,9 +136,9 @@ def test_a_measurement_still_waiting_is_withdrawn_when_its_track_moves():
 
 def test_the_pipeline_puts_objects_in_the_graph_and_re_clusters_after_loop_closures():
     ds = open_dataset("synthetic:room?seed=0&frames=300")
-    p = Pipeline(load_settings(None, {"loops": {"source": "appearance"}}))
+    p = build_core(load_settings(None, {"loops": {"source": "appearance"}}))
     for i in range(len(ds)):
-        p.process(ds.frame(i))
+        p.step(ds.frame(i))
     assert p.loops.n_accepted > 0 and p.reposes > 0
     objects = p.object_list()
     with_landmark = [o for o in objects if o["landmark"] is not None]

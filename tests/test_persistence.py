@@ -26,7 +26,9 @@ from service.persistence import HEADER, Persistence, SnapshotError, SnapshotStor
 from service.protocol import decode_frame, encode_frame
 from service.replay import frame_publisher
 from service.zenoh_session import open_session
-from slam.core import Pipeline
+from service.scheduler import ThreadedRunner
+from slam.build import build_core
+from slam.snapshot import core_state, restore_core
 from sources import open_dataset
 from tests.test_integration_zenoh import _get, _wait_for_service
 
@@ -46,25 +48,25 @@ def payloads() -> list[bytes]:
 def reference(payloads):
     """An uninterrupted in-process run: trajectory after each number of frames, final loops and objects,
     and at frame CUT its state as snapshot bytes, loop records and objects."""
-    p = Pipeline(load_settings())
+    p = build_core(load_settings())
     after = [np.zeros((0, 4, 4))]
     keyframes = [0]
     at_cut = {}
     for i, payload in enumerate(payloads):
-        p.process(decode_frame(payload))
+        p.step(decode_frame(payload))
         after.append(p.trajectory().poses)
         keyframes.append(p.graph.num_keyframes)
         if i + 1 == CUT:
             at_cut = {
-                "snapshot": seal(encode(p.state())),
-                "loops": p.loop_records(),
+                "snapshot": seal(encode(core_state(p))),
+                "loops": [r.to_json() for r in p.loop_records()],
                 "objects": p.object_list(),
                 "accepted": dict(p.loops.accepted),
             }
     return {
         "after": after,
         "keyframes": keyframes,
-        "loops": p.loop_records(),
+        "loops": [r.to_json() for r in p.loop_records()],
         "objects": p.object_list(),
         "cut": at_cut,
     }
@@ -114,14 +116,14 @@ def test_pose_graph_replayed_from_state_is_identical_and_retracted_factors_stay_
 
 def test_pipeline_restored_mid_run_continues_exactly_like_an_uninterrupted_run(payloads, reference):
     cut = reference["cut"]
-    restored = Pipeline.from_state(load_settings(), decode(unseal(cut["snapshot"])))
+    restored = restore_core(load_settings(), decode(unseal(cut["snapshot"])))
     assert restored.loops.n_accepted > 0 and restored.loops.accepted.keys() == cut["accepted"].keys()
     assert np.array_equal(restored.trajectory().poses, reference["after"][CUT])
-    assert restored.loop_records() == cut["loops"] and restored.object_list() == cut["objects"]
+    assert [r.to_json() for r in restored.loop_records()] == cut["loops"] and restored.object_list() == cut["objects"]
     for payload in payloads[CUT:]:
-        restored.process(decode_frame(payload))
+        restored.step(decode_frame(payload))
     assert np.array_equal(restored.trajectory().poses, reference["after"][FRAMES])
-    assert restored.loop_records() == reference["loops"] and len(restored.loop_records()) > 1
+    assert [r.to_json() for r in restored.loop_records()] == reference["loops"] and len(restored.loop_records()) > 1
     assert restored.object_list() == reference["objects"] and len(reference["objects"]) > 3
 
 
@@ -131,13 +133,13 @@ def test_visual_odometry_state_round_trip_continues_exactly():
     for f in frames:
         f.odometry = None  # the RGB-D front end
     settings = load_settings(None, {"loops": {"source": "off"}})
-    a = Pipeline(settings)
+    a = build_core(settings)
     for f in frames[:25]:
-        a.process(f)
-    b = Pipeline.from_state(settings, _round_trip(a.state()))
+        a.step(f)
+    b = restore_core(settings, _round_trip(core_state(a)))
     for f in frames[25:]:
-        a.process(f)
-        b.process(f)
+        a.step(f)
+        b.step(f)
     assert a.graph.num_keyframes > 5 and np.array_equal(a.trajectory().poses, b.trajectory().poses)
     assert np.array_equal(a.odometry_trajectory().poses, b.odometry_trajectory().poses)
 

@@ -6,58 +6,60 @@ import numpy as np
 import pytest
 
 from service.config import load_settings
-from service.protocol import FrameRejected, Reason
-from slam.core import Pipeline
+from perception.frame import FrameRejected, Reason
+from service.scheduler import ThreadedRunner
+from slam.build import build_core
+from slam.snapshot import core_state, restore_core
 from sources import open_dataset
 from tests.conftest import REDKITCHEN, make_frame, requires_redkitchen
 
 
 def test_stream_with_odometry_reproduces_it_and_rejects_bad_timestamps():
-    p = Pipeline(load_settings(None, {"loops": {"source": "off"}}))
+    p = build_core(load_settings(None, {"loops": {"source": "off"}}))
     for i in range(20):
-        p.process(make_frame(t=1.0 + i, seq=i))
+        p.step(make_frame(t=1.0 + i, seq=i))
     traj = p.trajectory()
     np.testing.assert_allclose(traj.poses[:, 0, 3], 0.1 * (1.0 + np.arange(20)), atol=1e-9)
     for t, reason in ((20.0, Reason.DUPLICATE_TIMESTAMP), (3.0, Reason.OUT_OF_ORDER)):
         with pytest.raises(FrameRejected) as info:
-            p.process(make_frame(t=t))
+            p.step(make_frame(t=t))
         assert info.value.reason is reason
     missing = make_frame(t=30.0)
     missing.odometry = None
     with pytest.raises(FrameRejected) as info:
-        p.process(missing)
+        p.step(missing)
     assert info.value.reason is Reason.NO_ODOMETRY
     empty = make_frame(t=31.0)
     empty.depth[:] = 0
     with pytest.raises(FrameRejected) as info:
-        p.process(empty)
+        p.step(empty)
     assert info.value.reason is Reason.EMPTY_DEPTH
     assert len(p.records) == 20
 
 
 def test_provided_detections_bypass_the_detector():
-    p = Pipeline(load_settings(None, {"loops": {"source": "off"}}))
-    p.process(make_frame(t=1.0))
+    p = build_core(load_settings(None, {"loops": {"source": "off"}}))
+    p.step(make_frame(t=1.0))
     assert p.detections_by_class == {}  # the keyframe's objects are mapped until the next keyframe or flush
     p.flush()
-    assert p._detector is None and p.detections_by_class == {"cup": 1}
+    assert not p.detector_loaded and p.detections_by_class == {"cup": 1}
 
 
 @requires_redkitchen
 def test_keyframes_without_detections_run_the_onnx_detector():
     ds = open_dataset(str(REDKITCHEN))
-    p = Pipeline(load_settings(None, {"loops": {"source": "off"}}))
-    p.process(ds.frame(0))
+    p = build_core(load_settings(None, {"loops": {"source": "off"}}))
+    p.step(ds.frame(0))
     p.flush()
-    assert p._detector is not None and "detector" in p.timings
+    assert p.detector_loaded and "detector" in p.timings
     assert {"chair", "cup"} & set(p.detections_by_class)
 
 
 def test_objects_are_mapped_near_their_true_boxes_with_the_right_labels():
     ds = open_dataset("synthetic:room?seed=1&frames=300")
-    p = Pipeline(load_settings(None, {"loops": {"source": "off"}}))
+    p = build_core(load_settings(None, {"loops": {"source": "off"}}))
     for i in range(0, 120):
-        p.process(ds.frame(i))
+        p.step(ds.frame(i))
     p.finish()
     objects = p.object_list()
     truth = ds.objects
@@ -72,12 +74,12 @@ def test_object_mapping_in_background_gives_exactly_the_inline_result():
     # small frames keep tracking fast, so the mapping thread is still busy when the next keyframes arrive
     ds = open_dataset("synthetic:room?seed=0&frames=160&fps=10&width=320&height=240")
     settings = load_settings(None, {"loops": {"source": "appearance"}})
-    inline, background = Pipeline(settings), Pipeline(settings, background=True)
+    inline, background = build_core(settings), build_core(settings, ThreadedRunner())
     try:
         frames = [ds.frame(i) for i in range(160)]
         for p in (background, inline):  # one after the other: the worker runs ahead of the mapping thread
             for frame in frames:
-                p.process(frame)
+                p.step(frame)
         for p in (inline, background):
             p.finish()
         assert background.graph.num_landmarks > 0 and len(background.object_list()) >= 5
@@ -92,14 +94,14 @@ def test_object_mapping_in_background_gives_exactly_the_inline_result():
 def test_detection_on_its_own_thread_gives_exactly_the_inline_result():
     ds = open_dataset(str(REDKITCHEN))
     settings = load_settings(None, {"loops": {"source": "off"}})
-    inline, background = Pipeline(settings), Pipeline(settings, background=True)
+    inline, background = build_core(settings), build_core(settings, ThreadedRunner())
     try:
         frames = [ds.frame(i) for i in range(0, 120, 2)]
         for p in (background, inline):
             for frame in frames:
-                p.process(frame)
+                p.step(frame)
             p.finish()
-        assert background._detecting is not background._mapping  # the detector thread was used
+        assert isinstance(background.runner, ThreadedRunner)  # detection ran on the scheduler's detector thread
         assert len(background.keyframe_detections) >= 8 and sum(background.detections_by_class.values()) >= 8
         assert background.keyframe_detections == inline.keyframe_detections
         assert background.object_list() == inline.object_list()
@@ -109,7 +111,7 @@ def test_detection_on_its_own_thread_gives_exactly_the_inline_result():
 
 
 def test_a_failing_object_mapping_is_counted_and_the_pipeline_goes_on(monkeypatch):
-    p = Pipeline(load_settings(None, {"loops": {"source": "off"}}), background=True)
+    p = build_core(load_settings(None, {"loops": {"source": "off"}}), ThreadedRunner())
     try:
 
         def broken(*args):
@@ -117,13 +119,13 @@ def test_a_failing_object_mapping_is_counted_and_the_pipeline_goes_on(monkeypatc
 
         monkeypatch.setattr(p.objects, "add_keyframe", broken)
         for i in range(10):
-            p.process(make_frame(t=1.0 + i, seq=i))
+            p.step(make_frame(t=1.0 + i, seq=i))
         p.flush()
         assert p.mapping_errors == p.graph.num_keyframes >= 2
         assert len(p.records) == 10 and p.object_list() == []
         monkeypatch.undo()
-        p.process(make_frame(t=20.0, seq=20))
-        p.process(make_frame(t=30.0, seq=30))
+        p.step(make_frame(t=20.0, seq=20))
+        p.step(make_frame(t=30.0, seq=30))
         p.flush()
         assert p.mapping_errors == p.graph.num_keyframes - 2 and p.keyframe_detections
     finally:

@@ -22,7 +22,9 @@ from service.persistence import decode, encode, seal, unseal
 from service.protocol import encode_frame
 from service.replay import frame_publisher
 from service.zenoh_session import open_session
-from slam.core import Pipeline
+from service.scheduler import ThreadedRunner
+from slam.build import build_core
+from slam.snapshot import core_state, restore_core
 from sources import open_dataset
 
 
@@ -175,12 +177,12 @@ def test_a_rolled_window_restored_from_its_state_continues_like_the_original(win
 def _run(window: int, step: int):
     settings = load_settings(None, {"graph": {"window_keyframes": window, "window_step": step}})
     ds = open_dataset("synthetic:room?seed=0&frames=300")
-    p = Pipeline(settings)
+    p = build_core(settings)
     try:
         for i in range(len(ds)):
             frame = ds.frame(i)
             frame.odometry = None  # the visual front end: its factors, skip edges and loops go into the graph
-            p.process(frame)
+            p.step(frame)
         p.finish()
         truth = ds.ground_truth.poses
         return p, trajectory_error(p.trajectory().poses, truth[: len(p.records)]), p.graph.start
@@ -206,19 +208,19 @@ def test_a_service_snapshot_of_a_rolled_window_restores_the_trajectory_exactly()
     frames = [ds.frame(i) for i in range(300)]
     for frame in frames:
         frame.odometry = None  # the visual front end, with loop closures
-    p = Pipeline(settings)
+    p = build_core(settings)
     try:
         for frame in frames[:270]:
-            p.process(frame)
+            p.step(frame)
         p.flush()
         assert p.graph.start > 0 and p.loops.n_accepted > 0
-        restored = Pipeline.from_state(settings, decode(unseal(seal(encode(p.state())))))
+        restored = restore_core(settings, decode(unseal(seal(encode(core_state(p))))))
         try:
             assert restored.graph.start == p.graph.start
             assert np.array_equal(restored.trajectory().poses, p.trajectory().poses)
             assert restored.loop_records() == p.loop_records()
             for frame in frames[270:]:  # and it goes on mapping
-                restored.process(frame)
+                restored.step(frame)
             assert restored.graph.num_keyframes > p.graph.num_keyframes
         finally:
             restored.close()

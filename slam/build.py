@@ -1,0 +1,90 @@
+"""The SLAM core's components built from the configuration (the one place that knows every section)."""
+
+from __future__ import annotations
+
+from dataclasses import fields
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel
+
+from graph.object_landmarks import ObjectLandmarks
+from graph.pose_graph import NoiseSettings
+from graph.window import WindowedGraph, WindowSettings
+from loops.closer import LoopCloser
+from perception.frame import CameraModel
+from perception.frontend import ExternalOdometry, KeyframePolicy, VisualOdometry
+from perception.object_map import ObjectMapper
+from perception.odometry import FeatureExtractor, OdometryConfig, RelativePoseEstimator
+from rl.proposer import PolicyProposer
+from slam.core import SlamCore, Tracking, TrackingFactory
+from slam.runner import Runner
+from slam.settings import SlamConfig
+
+
+def from_settings(cls: Any, *sections: BaseModel) -> Any:
+    """A component's frozen config dataclass from the same-named fields of configuration sections.
+
+    Where two sections share a field name the earlier section wins (keyframes.min_inliers over odometry's).
+    """
+    names = {f.name for f in fields(cls)}
+    values: dict = {}
+    for section in sections:
+        for k, v in section.model_dump().items():
+            if k in names:
+                values.setdefault(k, v)
+    return cls(**values)
+
+
+def load_proposer(path: Path | None, radius: int, candidates: int) -> PolicyProposer:
+    """The RL loop-closure proposer for a policy file (``loops.policy``)."""
+    from rl.policy import OnnxPolicy  # onnxruntime session only when a policy is configured
+
+    if path is None:
+        raise ValueError("loops.source policy/both needs loops.policy (a FILE.onnx from train-lc --from-map)")
+    return PolicyProposer(OnnxPolicy(path), radius=radius, max_candidates=candidates)
+
+
+def tracking_factory(settings: SlamConfig, graph: WindowedGraph) -> TrackingFactory:
+    """Builds the front end (external or visual odometry) and loop closure for the first frame's camera."""
+    policy = from_settings(KeyframePolicy, settings.keyframes, settings.odometry)
+    odometry = from_settings(OdometryConfig, settings.odometry)
+
+    def build(camera: CameraModel, external: bool) -> Tracking:
+        frontend = ExternalOdometry(policy) if external else VisualOdometry(camera, policy, odometry)
+        if settings.loops.source == "off":
+            return Tracking(camera, frontend)
+        loops = LoopCloser(graph, RelativePoseEstimator(camera, odometry), settings.loops)
+        return Tracking(camera, frontend, loops, FeatureExtractor(camera, odometry))
+
+    return build
+
+
+def new_graph(settings: SlamConfig) -> WindowedGraph:
+    """An empty bounded pose graph."""
+    return WindowedGraph(from_settings(NoiseSettings, settings.graph), from_settings(WindowSettings, settings.graph))
+
+
+def build_core(settings: SlamConfig, runner: Runner | None = None, graph: WindowedGraph | None = None) -> SlamCore:
+    """A SLAM core for ``settings``, its stages run by ``runner`` (default: at once), on ``graph`` (default:
+    a new one)."""
+    graph = graph if graph is not None else new_graph(settings)
+    objects_on = settings.objects.enabled
+    loops = settings.loops
+    proposer = load_proposer(loops.policy, loops.policy_radius, loops.policy_candidates) if loops.uses_policy else None
+
+    def detector():  # built at the first keyframe that needs it (onnxruntime session)
+        from perception.detector import Detector, DetectorConfig
+
+        return Detector(from_settings(DetectorConfig, settings.detector))
+
+    return SlamCore(
+        settings,
+        graph,
+        tracking_factory(settings, graph),
+        objects=ObjectMapper() if objects_on else None,
+        landmarks=ObjectLandmarks(graph, settings.objects) if objects_on and settings.objects.landmarks else None,
+        proposer=proposer,
+        detector=detector,
+        runner=runner,
+    )

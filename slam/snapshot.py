@@ -1,0 +1,111 @@
+"""The SLAM core's whole state as plain data, and a core rebuilt from it (``service.persistence`` writes it).
+
+Plain data: numbers, arrays, objslam's own dataclasses. cv2, gtsam and ONNX objects are rebuilt, never
+saved: the graph replays its recorded factors and iSAM2 updates, so a restored core continues bit for bit
+like one that never stopped. States written by release 0.1.0 (loop verdicts as tuples of dicts) restore too.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Any
+
+import numpy as np
+
+from graph.window import WindowedGraph
+from loops.records import LoopRecord, Verified
+from perception.frontend import ExternalOdometry
+from slam.build import build_core, from_settings
+from slam.core import SlamCore
+from slam.records import FrameRecord, KeyframeLoops
+from slam.runner import Done, Runner
+from slam.settings import SlamConfig
+
+
+def core_state(core: SlamCore) -> dict[str, Any]:
+    """Everything needed to continue exactly where ``core`` is. Waits for the submitted stages (their results
+    are part of the state). The result shares arrays with the core: serialise it before the next step."""
+    r = core.records
+    tracking = core.tracking
+    return {
+        "pending_mapping": core.settle(),
+        "objects_view": core.objects_view,
+        "mapping_errors": core.mapping_errors,
+        "camera": tracking.camera if tracking is not None else None,
+        "external_odometry": isinstance(tracking.frontend, ExternalOdometry) if tracking else False,
+        "frontend": tracking.frontend.state() if tracking is not None else None,
+        "graph": core.graph.state(),
+        "records": {
+            "timestamp": np.array([x.timestamp for x in r]),
+            "seq": np.array([x.seq for x in r], np.int64),
+            "keyframe": np.array([x.keyframe for x in r], np.int64),
+            "is_keyframe": np.array([x.is_keyframe for x in r], bool),
+            "odometry": np.array([x.odometry for x in r]).reshape(-1, 4, 4),
+            "from_keyframe": np.array([x.from_keyframe for x in r]).reshape(-1, 4, 4),
+        },
+        "kf_odometry": np.array(core.kf_odometry).reshape(-1, 4, 4),
+        "kf_points": core.kf_points,
+        "tracking_lost": core.tracking_lost,
+        "keyframe_detections": core.keyframe_detections,
+        "detections_by_class": dict(core.detections_by_class),
+        "objects": None if core.objects is None else core.objects.state(),
+        "object_map_version": core.object_map_version,
+        "landmarks": None if core.landmarks is None else core.landmarks.state(),
+        "object_poses": np.array(core.object_poses).reshape(-1, 4, 4),
+        "reposes": core.reposes,
+        "loops": None if core.loops is None else core.loops.state(),
+        "proposer": None if core.proposer is None else core.proposer.state(),
+    }
+
+
+def _loop_results(saved: Any) -> KeyframeLoops | None:
+    """A pending loop verification as saved (0.1.0: a tuple (verified with dict records, timings))."""
+    if saved is None or isinstance(saved, KeyframeLoops):
+        return saved
+    verified, timings = saved
+    return KeyframeLoops(
+        [Verified(v.record if isinstance(v.record, LoopRecord) else LoopRecord.from_json(v.record), v.relative)
+         for v in verified],
+        dict(timings),
+    )
+
+
+def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | None = None) -> SlamCore:
+    """A core that continues from ``state`` (of ``core_state``) exactly as the saved one would have."""
+    from graph.window import WindowSettings
+
+    graph = WindowedGraph.from_state(state["graph"], from_settings(WindowSettings, settings.graph))
+    core = build_core(settings, runner, graph)
+    if state["camera"] is not None:
+        tracking = core.tracking_factory(state["camera"], state["external_odometry"])
+        tracking.frontend.restore(state["frontend"])
+        if tracking.loops is not None and state["loops"] is not None:
+            tracking.loops.restore(state["loops"])
+        core.tracking = tracking
+        if core.proposer is not None and state.get("proposer") is not None:
+            core.proposer.restore(state["proposer"])
+    r = state["records"]
+    rows = zip(r["timestamp"], r["seq"], r["keyframe"], r["is_keyframe"], r["odometry"], r["from_keyframe"],
+               strict=True)
+    core.records = [FrameRecord(float(t), int(s), int(k), bool(kf), odo, off) for t, s, k, kf, odo, off in rows]
+    core.kf_odometry = list(state["kf_odometry"])
+    core.kf_points = list(state.get("kf_points", []))
+    core.tracking_lost = state["tracking_lost"]
+    core.keyframe_detections = state["keyframe_detections"]
+    core.detections_by_class = Counter(state["detections_by_class"])
+    if core.objects is not None and state["objects"] is not None:
+        core.objects.restore(state["objects"])
+    core.object_map_version = state["object_map_version"]
+    if core.landmarks is not None and state.get("landmarks") is not None:
+        core.landmarks.restore(state["landmarks"])
+    core.object_poses = list(state.get("object_poses", graph.poses()[: len(core.keyframe_detections)]))
+    core.reposes = state.get("reposes", 0)
+    core.mapping_errors = state.get("mapping_errors", 0)
+    if core.objects is not None:
+        core.objects_view = list(state.get("objects_view", core.objects.objects))
+    for results in state.get("pending_mapping", []):
+        jobs = {"objects": Done(results["objects"])} if "objects" in results else {}
+        if "loops" in results:
+            jobs["loops"] = Done(_loop_results(results["loops"]))
+        core.pending.append(jobs)
+    return core
