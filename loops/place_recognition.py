@@ -75,6 +75,6 @@ class PlaceIndex:
         best = old[np.argsort(-sims)[:top_k]]
         return [
             Candidate(int(self._ids[i]), float(s))
-            for i, s in zip(best, np.sort(-sims)[:top_k] * -1)
+            for i, s in zip(best, np.sort(-sims)[:top_k] * -1, strict=True)
             if s >= min_similarity
         ]

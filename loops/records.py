@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields
-from enum import Enum
+from enum import StrEnum
 from typing import Any
 
 from perception.odometry import Features, Relative
 
 
-class Source(str, Enum):
+class Source(StrEnum):
     """Where a candidate came from."""
 
     APPEARANCE = "appearance"
@@ -67,8 +67,17 @@ class LoopRecord:
     rotation_diff_deg: float | None = None
     factor: int | None = None
 
-    _PREFIX = ("query_t", "match_t", "query_frame", "match_frame", "query_keyframe", "match_keyframe", "source",
-               "accepted", "similarity")
+    _PREFIX = (
+        "query_t",
+        "match_t",
+        "query_frame",
+        "match_frame",
+        "query_keyframe",
+        "match_keyframe",
+        "source",
+        "accepted",
+        "similarity",
+    )
     _MEASURED = ("matches", "inliers", "residual_px", "relative_pose", "distance_m", "angle_deg")
 
     def to_json(self) -> dict[str, Any]:

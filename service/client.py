@@ -21,7 +21,8 @@ def query(settings: Settings, what: str, timeout: float | None = None) -> dict[s
         for reply in session.get(key, timeout=timeout):
             if reply.ok is not None:
                 return json.loads(reply.ok.payload.to_bytes())
-            raise RuntimeError(f"{key}: service replied with an error: {reply.err.payload.to_string()}")
+            error = reply.err.payload.to_string() if reply.err is not None else "(no payload)"
+            raise RuntimeError(f"{key}: service replied with an error: {error}")
     finally:
         session.close()
     raise TimeoutError(f"no reply on {key} within {timeout:.1f} s (is `objslam serve` running and reachable?)")

@@ -138,6 +138,11 @@ class Settings(BaseSettings):
     persistence: PersistenceSettings = Field(default_factory=PersistenceSettings)
     camera: CameraDefaults = Field(default_factory=CameraDefaults)
 
+    def map_sections(self) -> dict[str, Any]:
+        """The sections that shape the map (not endpoints, queue or state dir), to compare on resume."""
+        sections = {"keyframes", "odometry", "loops", "detector", "objects", "graph", "camera"}
+        return self.model_dump(mode="json", include=sections)
+
     @property
     def key_prefix(self) -> str:
         """Keys of this robot: ``<key_prefix>/<robot>``."""

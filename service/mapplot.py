@@ -60,7 +60,7 @@ def plot_map(
             g_est = (inv[:3, :3] @ g.T + inv[:3, 3:4]).T
             ax.plot(*(g_est @ axes.T).T, color="0.6", lw=1.5, label="ground truth (aligned)")
         ax.plot(*(odometry.poses[:, :3, 3] @ axes.T).T, color="tab:orange", lw=1, ls="--", label="odometry")
-        by_t = {float(t): p for t, p in zip(trajectory.timestamps, pts)}
+        by_t = {float(t): p for t, p in zip(trajectory.timestamps, pts, strict=True)}
         for r in loops or []:
             a, b = by_t.get(float(r["match_t"])), by_t.get(float(r["query_t"]))
             if r.get("accepted") and a is not None and b is not None:

@@ -3,11 +3,9 @@
 Zenoh callbacks only enqueue bytes or serialise a reply. A decoder thread takes raw messages from the ingest
 queue and validates and decodes them (PNG/JPEG decoding releases the GIL), handing at most two decoded frames
 to the worker thread, which runs the SLAM core: decoding the next frame overlaps processing this one.
-After each frame the worker publishes an immutable ``MapSummary`` (counts, objects, loop records) that the
-``status``, ``objects`` and ``loops`` queryables read without waiting for the SLAM core; only ``trajectory``
-(the optimised poses, computed on demand) takes the SLAM core lock.
-With a state directory the node resumes from its newest good snapshot and writes one every N keyframes
-(on the worker thread, between frames) and on ``stop``.
+After each frame the worker publishes an immutable ``MapSummary`` that the ``status``, ``objects`` and ``loops``
+queryables read without waiting; only ``trajectory`` (computed on demand) takes the core's lock. With a state
+directory the node resumes from its newest good snapshot and writes one every N keyframes and on ``stop``.
 """
 
 from __future__ import annotations
@@ -18,8 +16,6 @@ import queue
 import sys
 import threading
 import time
-from collections import Counter
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -31,29 +27,19 @@ from graph.trajectory import Trajectory
 from perception.frame import Frame
 from service.config import Settings
 from service.ingest import IngestQueue
+from service.map_summary import MapSummary, loop_events, summarize
 from service.outputs import run_summary, write_outputs
 from service.persistence import Persistence
 from service.protocol import VERSION, FrameRejected, Limits, decode_frame
-from service.stats import ServiceStats
+from service.save_requests import SaveRequests
 from service.scheduler import ThreadedRunner
+from service.stats import ServiceStats
 from slam.build import build_core
 from slam.snapshot import core_state, restore_core
 
 log = logging.getLogger(__name__)
 
 SWITCH_INTERVAL_S = 0.001
-
-
-@dataclass(frozen=True)
-class MapSummary:
-    """What the queryables report of the map, taken by the worker between frames; never changed afterwards."""
-
-    counts: dict[str, Any] = field(default_factory=dict)  # status fields: keyframes, poses, factors, ...
-    objects: list[dict] = field(default_factory=list)
-    object_map_version: int = -1
-    loops: list[dict] = field(default_factory=list)
-    loops_key: tuple[int, int] = (-1, -1)  # (records, accepted) when ``loops`` was copied
-    objects_key: tuple[int, int] = (-1, -1)  # (object map version, graph update) when ``objects`` was copied
 
 
 class ServiceNode:
@@ -73,7 +59,7 @@ class ServiceNode:
         self._stop = threading.Event()
         self._frame_done = threading.Condition()  # notified after each frame is processed, rejected or failed
         self._decoded: queue.Queue[tuple[Frame, float]] = queue.Queue(maxsize=2)  # decoder -> worker
-        self._save_requests: queue.Queue[zenoh.Query] = queue.Queue(maxsize=4)  # ``save`` queries -> worker
+        self.saves = SaveRequests(settings.robot, self.prefix, settings.state_dir, self.write_outputs)
         self._saved_completed = 0  # frames completed (processed, rejected, failed, dropped) in the newest snapshot
         self._last_version = 0
         self._accepted_loops: set[int] = set()  # factor indices of the accepted loops last published
@@ -106,7 +92,7 @@ class ServiceNode:
             ("loops", self.loops_reply),
         ):
             self._entities.append(s.declare_queryable(f"{p}/{name}", self._replier(name, handler)))
-        self._entities.append(s.declare_queryable(f"{p}/save", self._on_save))
+        self._entities.append(s.declare_queryable(f"{p}/save", self.saves.enqueue))
         self.events = s.declare_publisher(f"{p}/events")
         self._entities.append(self.events)
         self._decoder.start()
@@ -152,9 +138,7 @@ class ServiceNode:
         left = self.queue.discard() + self.queue.count_dropped(decoded)
         if left:
             log.info("stopping with %d queued frames unprocessed: counted in frames_dropped", left)
-        stopping = json.dumps({"error": "the service is stopping (with a state directory it writes its outputs)"})
-        while not self._save_requests.empty():  # the worker will not write them now
-            self._save_requests.get_nowait().reply_err(stopping.encode())
+        self.saves.refuse_all("the service is stopping (with a state directory it writes its outputs)")
 
     @property
     def completed(self) -> int:
@@ -224,8 +208,7 @@ class ServiceNode:
     def _work(self) -> None:
         """Worker thread: decoded frames through the SLAM core, one at a time; ``save`` requests between them."""
         while not self._stop.is_set():
-            if not self._save_requests.empty():
-                self._answer_saves()
+            self.saves.answer()
             try:
                 frame, received = self._decoded.get(timeout=0.1)
             except queue.Empty:
@@ -302,12 +285,12 @@ class ServiceNode:
             "pipeline": core_state(self.core),
             "stats": stats,
             "frames_dropped": self.queue.dropped,
-            "settings": _map_settings(self.settings),
+            "settings": self.settings.map_sections(),
         }
 
     def _restore(self, state: dict[str, Any]) -> None:
         """Continue from a snapshot's state (built completely before anything is replaced)."""
-        saved, current = state["settings"], _map_settings(self.settings)
+        saved, current = state["settings"], self.settings.map_sections()
         changed = sorted(k for k in saved.keys() | current.keys() if saved.get(k) != current.get(k))
         if changed:
             log.warning(
@@ -323,36 +306,8 @@ class ServiceNode:
         self._accepted_loops = {r.factor for r in core.loop_records() if r.accepted and r.factor is not None}
 
     def _publish_summary(self) -> None:
-        """Take the map's counts, objects and loop records for the queryables (worker thread, between frames).
-
-        Objects and loop records are copied only when they changed, so a frame that changes neither costs a
-        few attribute reads.
-        """
-        p, old = self.core, self._summary
-        graph = p.graph
-        # landmark estimates move with every graph update; without landmarks only the object map version counts
-        objects_key = (p.object_map_version, graph.updates if graph.num_landmarks else 0)
-        objects = old.objects if old.objects_key == objects_key else p.object_list()
-        records = p.loops.records if p.loops is not None else []
-        accepted = p.loops.n_accepted if p.loops is not None else 0
-        key = (len(records), accepted)
-        loops = old.loops if key == old.loops_key else [r.to_json() for r in records]
-        counts = {
-            "keyframes": graph.num_keyframes,
-            "poses": graph.num_keyframes,
-            "factors": graph.num_factors,
-            "landmarks": graph.num_landmarks,
-            "tracking_lost": p.tracking_lost,
-            "landmark_measurements": len(p.landmarks.assigned) if p.landmarks is not None else 0,
-            "object_reposes": p.reposes,
-            "object_mapping_errors": p.mapping_errors,
-            "loop_closures": {"accepted": accepted, "rejected": len(records) - accepted},
-            "graph_window": {"first_keyframe": graph.start, "whole_graph_solves": graph.global_solves},
-            "keyframe_detections_by_class": dict(p.detections_by_class),
-            "objects": len(objects),
-            "objects_by_class": dict(Counter(o["label"] for o in objects)),
-        }
-        summary = MapSummary(counts, objects, p.object_map_version, loops, key, objects_key)
+        """Take the map's counts, objects and loop records for the queryables (worker thread, between frames)."""
+        summary = summarize(self.core, self._summary)
         with self._summary_lock:
             self._summary = summary
 
@@ -370,7 +325,8 @@ class ServiceNode:
             events.append({"type": "objects", "objects": summary.objects})
             self._last_version = summary.object_map_version
         if summary.loops_key != self._loops_key:
-            events += self._loop_events(summary.loops)
+            new_events, self._accepted_loops = loop_events(summary.loops, self._accepted_loops)
+            events += new_events
             self._loops_key = summary.loops_key
         for event in events:
             try:
@@ -378,51 +334,7 @@ class ServiceNode:
             except zenoh.ZError as exc:
                 log.warning("could not publish event: %s", exc)
 
-    def _loop_events(self, records: list[dict]) -> list[dict]:
-        """Events for the loops accepted and retracted since the last call (by factor index)."""
-        accepted = {r["factor"]: r for r in records if r["accepted"]}
-        new = [accepted[f] for f in sorted(accepted.keys() - self._accepted_loops)]
-        gone = [r for r in records if not r["accepted"] and r.get("factor") in self._accepted_loops]
-        self._accepted_loops = set(accepted)
-        events = [{"type": "loop_closure", "accepted": len(accepted), "latest": new}] if new else []
-        return events + ([{"type": "loop_retracted", "accepted": len(accepted), "retracted": gone}] if gone else [])
-
     # ------------------------------------------------------------ queries
-
-    def _on_save(self, query: zenoh.Query) -> None:
-        """``save``: the worker writes the outputs between frames and replies; here the query is only queued."""
-        try:
-            self._save_requests.put_nowait(query)
-        except queue.Full:
-            query.reply_err(json.dumps({"error": "busy: earlier save requests are still being written"}).encode())
-
-    def _answer_saves(self) -> None:
-        while True:
-            try:
-                query = self._save_requests.get_nowait()
-            except queue.Empty:
-                return
-            try:
-                if self.settings.state_dir is None:
-                    raise ValueError("this service has no state directory (serve --state-dir DIR) to write to")
-                t0 = time.perf_counter()
-                out = Path(self.settings.state_dir)
-                summary = self.write_outputs(out)
-                files = sorted(path.name for path in out.iterdir() if path.is_file())
-                body = {
-                    "robot": self.settings.robot,
-                    "dir": str(out),
-                    "files": files,
-                    "keyframes": summary["keyframes"],
-                    "frames_processed": summary["frames_processed"],
-                    "seconds": round(time.perf_counter() - t0, 3),
-                }
-                query.reply(f"{self.prefix}/save", json.dumps(body).encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
-            except Exception as exc:  # a failed save must not take the service down
-                log.exception("save request failed")
-                query.reply_err(json.dumps({"error": str(exc)}).encode())
-            finally:
-                del query  # dropping it finalizes the query for the client
 
     def write_outputs(self, out: Path) -> dict[str, Any]:
         """The outputs of SPEC section 4 of the map as it stands, into ``out``; returns the summary."""
@@ -464,7 +376,7 @@ class ServiceNode:
     def trajectory_reply(self) -> dict[str, Any]:
         """Optimised poses of every processed frame: ``{"frame": "world", "poses": [[t, tx..qw], ...]}``."""
         traj, _ = self.trajectories()
-        rows = [[float(t), *map(float, pose_to_tum(T))] for t, T in zip(traj.timestamps, traj.poses)]
+        rows = [[float(t), *map(float, pose_to_tum(T))] for t, T in zip(traj.timestamps, traj.poses, strict=True)]
         return {"robot": self.settings.robot, "format": "t tx ty tz qx qy qz qw", "poses": rows}
 
     def finish(self) -> None:
@@ -485,10 +397,3 @@ class ServiceNode:
     def loops_reply(self) -> dict[str, Any]:
         """Every loop-closure candidate with its verdict (SPEC section 4 fields), as of the last processed frame."""
         return {"robot": self.settings.robot, "loops": self.summary.loops}
-
-
-def _map_settings(settings: Settings) -> dict[str, Any]:
-    """The settings sections that shape the map (not endpoints, queue or state dir), to compare on resume."""
-    return settings.model_dump(
-        mode="json", include={"keyframes", "odometry", "loops", "detector", "objects", "graph", "camera"}
-    )

@@ -30,7 +30,7 @@ def atomic_write(path: Path, data: str | bytes) -> None:
 def tum_text(traj: Trajectory) -> str:
     """TUM trajectory text (``t tx ty tz qx qy qz qw``), readable by evo."""
     lines = ["# timestamp tx ty tz qx qy qz qw"]
-    for t, T in zip(traj.timestamps, traj.poses):
+    for t, T in zip(traj.timestamps, traj.poses, strict=True):
         lines.append(" ".join([f"{t:.6f}"] + [f"{v:.9f}" for v in pose_to_tum(T)]))
     return "\n".join(lines) + "\n"
 

@@ -177,7 +177,8 @@ class SnapshotStore:
         """Write ``payload`` (``encode``'s pieces) as the next snapshot, atomically and durably; prune the oldest."""
         t0 = time.perf_counter()
         existing = self.snapshots()
-        number = int(_NAME.match(existing[-1].name).group(1)) + 1 if existing else 1
+        last = _NAME.match(existing[-1].name) if existing else None  # ``snapshots()`` lists only matching names
+        number = int(last.group(1)) + 1 if last else 1
         path = self.directory / f"snapshot-{number:08d}.bin"
         fd, tmp = tempfile.mkstemp(dir=self.directory, prefix=".snapshot-", suffix=".tmp")
         try:
@@ -192,7 +193,7 @@ class SnapshotStore:
             Path(tmp).unlink(missing_ok=True)
             raise
         _fsync_dir(self.directory)
-        for old in (existing + [path])[: -self.keep]:
+        for old in [*existing, path][: -self.keep]:
             old.unlink(missing_ok=True)
         return Written(path, HEADER.size + sum(p.nbytes for p in payload), time.perf_counter() - t0)
 

@@ -81,14 +81,20 @@ class Replayer:
             time.sleep(delay)
 
 
+def _matching(pub: zenoh.Publisher) -> bool:
+    """Whether a subscriber matches: zenoh 1.10 returns a MatchingStatus where its stub says bool."""
+    status: object = pub.matching_status
+    return bool(getattr(status, "matching", status))
+
+
 def frame_publisher(session: zenoh.Session, key: str, wait_for_subscriber_s: float = 5.0) -> zenoh.Publisher:
     """A reliable, blocking publisher on ``key``; waits briefly for a subscriber so no frame is lost at start."""
     pub = session.declare_publisher(
         key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE
     )
     deadline = time.monotonic() + wait_for_subscriber_s
-    while not pub.matching_status.matching and time.monotonic() < deadline:
+    while not _matching(pub) and time.monotonic() < deadline:
         time.sleep(0.02)
-    if not pub.matching_status.matching:
+    if not _matching(pub):
         log.warning("no subscriber on %s yet; publishing anyway", key)
     return pub

@@ -169,6 +169,8 @@ class SlamCore:
         if not self.kf_odometry:
             kf = self.graph.add_first(step.pose)
         else:
+            if step.factor is None:
+                raise ValueError("the front end made a keyframe without an odometry factor")
             kf = self.graph.add_keyframe(step.factor, step.sigma_m, step.sigma_deg)
             for back, T, sigma_m, sigma_deg in step.extra:
                 if kf - back >= 0:

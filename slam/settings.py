@@ -21,8 +21,9 @@ class ObjectSettings(LandmarkSettings):
     enabled: bool = True
     landmarks: bool = Field(True, description="stable objects become Point3 landmarks of the iSAM2 graph")
     repose_m: float = Field(
-        0.01, gt=0, description="re-pose and re-cluster objects once an optimisation has moved an observing "
-        "keyframe this far (m)"
+        0.01,
+        gt=0,
+        description="re-pose and re-cluster objects once an optimisation has moved an observing keyframe this far (m)",
     )
     repose_deg: float = Field(0.5, gt=0, description="... or turned it this much (degrees)")
 

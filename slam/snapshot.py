@@ -18,7 +18,7 @@ from perception.frontend import ExternalOdometry
 from slam.build import build_core, from_settings
 from slam.core import SlamCore
 from slam.records import FrameRecord, KeyframeLoops
-from slam.runner import Done, Runner
+from slam.runner import Done, Handle, Runner
 from slam.settings import SlamConfig
 
 
@@ -64,8 +64,10 @@ def _loop_results(saved: Any) -> KeyframeLoops | None:
         return saved
     verified, timings = saved
     return KeyframeLoops(
-        [Verified(v.record if isinstance(v.record, LoopRecord) else LoopRecord.from_json(v.record), v.relative)
-         for v in verified],
+        [
+            Verified(v.record if isinstance(v.record, LoopRecord) else LoopRecord.from_json(v.record), v.relative)
+            for v in verified
+        ],
         dict(timings),
     )
 
@@ -85,8 +87,9 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
         if core.proposer is not None and state.get("proposer") is not None:
             core.proposer.restore(state["proposer"])
     r = state["records"]
-    rows = zip(r["timestamp"], r["seq"], r["keyframe"], r["is_keyframe"], r["odometry"], r["from_keyframe"],
-               strict=True)
+    rows = zip(
+        r["timestamp"], r["seq"], r["keyframe"], r["is_keyframe"], r["odometry"], r["from_keyframe"], strict=True
+    )
     core.records = [FrameRecord(float(t), int(s), int(k), bool(kf), odo, off) for t, s, k, kf, odo, off in rows]
     core.kf_odometry = list(state["kf_odometry"])
     core.kf_points = list(state.get("kf_points", []))
@@ -104,7 +107,7 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
     if core.objects is not None:
         core.objects_view = list(state.get("objects_view", core.objects.objects))
     for results in state.get("pending_mapping", []):
-        jobs = {"objects": Done(results["objects"])} if "objects" in results else {}
+        jobs: dict[str, Handle] = {"objects": Done(results["objects"])} if "objects" in results else {}
         if "loops" in results:
             jobs["loops"] = Done(_loop_results(results["loops"]))
         core.pending.append(jobs)

@@ -9,6 +9,7 @@ import time
 import pytest
 
 from service.config import load_settings
+from service.map_summary import loop_events
 from service.node import ServiceNode
 from service.protocol import encode_frame
 from service.replay import frame_publisher
@@ -52,20 +53,23 @@ def test_status_objects_and_loops_answer_while_the_pipeline_is_busy():
 
 
 def test_loop_events_name_each_accepted_loop_once_and_each_retraction():
-    node = ServiceNode(load_settings(None, {"detector": {"enabled": False}}), _NoSession())
     first = [{"factor": 5, "accepted": True}, {"accepted": False, "reason": "too_few_inliers"}]
-    assert node._loop_events(first) == [{"type": "loop_closure", "accepted": 1, "latest": [first[0]]}]
-    assert node._loop_events(first) == []  # nothing new
+    events, published = loop_events(first, set())
+    assert events == [{"type": "loop_closure", "accepted": 1, "latest": [first[0]]}] and published == {5}
+    assert loop_events(first, published) == ([], {5})  # nothing new
     later = [
         {"factor": 5, "accepted": False, "reason": "retracted_inconsistent"},
         first[1],
         {"factor": 9, "accepted": True},
         {"factor": 7, "accepted": True},
     ]
-    assert node._loop_events(later) == [
-        {"type": "loop_closure", "accepted": 2, "latest": [later[3], later[2]]},
-        {"type": "loop_retracted", "accepted": 2, "retracted": [later[0]]},
-    ]
+    assert loop_events(later, published) == (
+        [
+            {"type": "loop_closure", "accepted": 2, "latest": [later[3], later[2]]},
+            {"type": "loop_retracted", "accepted": 2, "retracted": [later[0]]},
+        ],
+        {7, 9},
+    )
 
 
 @pytest.mark.integration

@@ -33,7 +33,11 @@ def _reachable_models(root: Any, limit: int = 200_000) -> set[int]:
     todo: deque[Any] = deque([root])
     while todo and len(seen) < limit:
         obj = todo.popleft()
-        if id(obj) in seen or obj is None or isinstance(obj, (str, bytes, int, float, bool, np.ndarray, type, Settings)):
+        if (
+            id(obj) in seen
+            or obj is None
+            or isinstance(obj, (str, bytes, int, float, bool, np.ndarray, type, Settings))
+        ):
             continue
         seen.add(id(obj))
         if isinstance(obj, BaseModel):
