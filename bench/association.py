@@ -21,6 +21,7 @@ from perception.features import FeatureVector
 from perception.frame import Detection
 from perception.npda import NPDAConfig, assign, associate, association_matrix
 from sources import ObjectTruth, open_dataset
+from sources.synthetic import SyntheticDataset
 
 TABLE_2_1 = "P 89.3-95.7 %, R 65.4-75.8 % (7 TUM / 7-Scenes sequences)"
 TAU_EDGES = (0.0, 0.05, 0.1, 0.2, 0.4, 0.6, 0.8, 1.0, 2.0)  # Table 2.2 rows: bin (previous, value]
@@ -75,12 +76,13 @@ class Counts:
 def load_scene(seed: int, frames: int) -> Scene:
     """Render every frame of ``synthetic:room?seed=..&frames=..`` once (depth kept as uint16)."""
     data = open_dataset(f"synthetic:room?seed={seed}&frames={frames}")
+    assert isinstance(data, SyntheticDataset)  # the true instance ids are the simulator's
     depth, dets, ids = [], [], []
     for i in range(len(data)):
         f = data.frame(i)
         depth.append(f.depth)
         dets.append(list(f.detections or []))
-        ids.append(list(f.extra["detection_instance_ids"]))
+        ids.append(data.detection_instance_ids(i))
     return Scene(data.camera.color.matrix(), data.ground_truth.poses, depth, dets, ids, data.objects)
 
 

@@ -7,8 +7,8 @@ centre looking outward for more than one turn, so late frames revisit early view
 
 Each frame carries colour, Kinect-like noisy depth (mm), drifting odometry and simulated detections.
 Ground truth for evaluation: ``ground_truth`` (true camera-to-world poses), ``objects``, ``loops``,
-``instance_mask(i)``, and ``frame.extra["detection_instance_ids"]`` (the true instance id of each
-detection, 0 for false positives). ``extra`` is evaluation-only metadata: the pipeline must not read it.
+``instance_mask(i)``, and ``detection_instance_ids(i)`` (the true instance id of each of frame i's
+detections, 0 for false positives). None of it enters the frames.
 Everything is a pure function of the parameters and (seed, frame index).
 
 Spec: ``synthetic:room?seed=0&frames=300&width=640&height=480&fps=30`` plus optional knobs
@@ -148,12 +148,16 @@ class SyntheticDataset(Dataset):
         """Per-pixel object id (uint16, 0 = room) of the nearest surface in frame ``index``."""
         return self._render(index).ids.copy()
 
+    def detection_instance_ids(self, index: int) -> list[int]:
+        """The true object id of each detection of frame ``index`` (0: a false positive); evaluation only."""
+        return [int(i) for i in self._detections(index, self._render(index))[1]]
+
     def frame(self, index: int) -> Frame:
-        """Frame ``index``: colour, noisy depth, odometry, detections (+ their true ids in ``extra``)."""
+        """Frame ``index``: colour, noisy depth, odometry, detections."""
         r = self._render(index)
         rng = np.random.default_rng([self.seed, index, 1])
         depth = kinect_depth(r.depth, self._gauss, rng, self.depth_noise)
-        dets, inst = self._detections(index, r)
+        dets, _ = self._detections(index, r)
         return Frame(
             timestamp=index / self.fps,
             seq=index,
@@ -164,7 +168,6 @@ class SyntheticDataset(Dataset):
             odometry=self._odometry[index].copy(),
             detections=dets,
             index=index,
-            extra={"detection_instance_ids": inst},
         )
 
     def _render(self, index: int) -> Render:
