@@ -13,6 +13,7 @@ from pydantic import BaseModel, Field, ValidationError
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
 from loops.settings import LoopSettings
+from service.protocol import Limits
 from slam.settings import ObjectSettings
 from sources.tum import CameraDefaults
 
@@ -34,12 +35,10 @@ class ZenohSettings(BaseModel):
     query_timeout_s: float = 5.0
 
 
-class IngestSettings(BaseModel):
-    """The bounded ingest queue between zenoh callbacks and the worker thread."""
+class IngestSettings(Limits):
+    """The bounded ingest queue between zenoh callbacks and the worker thread, and the decoder's bounds."""
 
     queue_size: int = Field(64, ge=1, description="frames held before the oldest is dropped")
-    max_payload_bytes: int = Field(64 * 1024 * 1024, ge=1024)
-    max_image_pixels: int = Field(4096 * 4096, ge=1)
 
 
 class KeyframeSettings(BaseModel):

@@ -30,7 +30,7 @@ from service.ingest import IngestQueue
 from service.map_summary import MapSummary, loop_events, summarize
 from service.outputs import run_summary, write_outputs
 from service.persistence import Persistence
-from service.protocol import VERSION, FrameRejected, Limits, decode_frame
+from service.protocol import VERSION, FrameRejected, decode_frame
 from service.save_requests import SaveRequests
 from service.scheduler import ThreadedRunner
 from service.stats import ServiceStats
@@ -52,7 +52,7 @@ class ServiceNode:
         self.queue = IngestQueue(settings.ingest.queue_size)
         self.stats = ServiceStats()
         self.core = build_core(settings, ThreadedRunner())  # keyframe stages on the scheduler's threads
-        self.limits = Limits(settings.ingest.max_payload_bytes, settings.ingest.max_image_pixels)
+        self.limits = settings.ingest  # the decoder's bounds are fields of the ingest section
         self._lock = threading.Lock()  # guards the SLAM core between the worker and the trajectory queryable
         self._summary_lock = threading.Lock()  # guards only the swap of ``_summary``
         self._summary = MapSummary()

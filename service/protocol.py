@@ -16,11 +16,11 @@ from __future__ import annotations
 import json
 import math
 import struct
-from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from graph.geometry import is_rigid, pose_from_tum, pose_to_tum
 from perception.frame import CameraModel, Detection, Frame, FrameRejected, Intrinsics, Reason
@@ -35,12 +35,16 @@ MAX_HEADER_BYTES = 1 << 20
 MAX_JSON_INT = 2**63
 
 
-@dataclass(frozen=True)
-class Limits:
-    """Bounds the decoder enforces on untrusted input."""
+class Limits(BaseModel):
+    """Bounds the decoder enforces on untrusted input (fields of the ``ingest`` settings section)."""
 
-    max_payload_bytes: int = 64 * 1024 * 1024
-    max_image_pixels: int = 4096 * 4096
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    max_payload_bytes: int = Field(64 * 1024 * 1024, ge=1024)
+    max_image_pixels: int = Field(4096 * 4096, ge=1)
+
+
+DEFAULT_LIMITS = Limits()
 
 
 # ---------------------------------------------------------------- encoding
@@ -116,8 +120,9 @@ def _encode_depth(depth: np.ndarray, encoding: str) -> bytes:
 # ---------------------------------------------------------------- decoding
 
 
-def decode_frame(payload: bytes, limits: Limits = Limits()) -> Frame:
+def decode_frame(payload: bytes, limits: Limits | None = None) -> Frame:
     """Parse and validate a protocol-v1 message; raises FrameRejected with the first problem found."""
+    limits = limits or DEFAULT_LIMITS
     if len(payload) > limits.max_payload_bytes:
         raise FrameRejected(Reason.TOO_LARGE, f"{len(payload)} bytes > {limits.max_payload_bytes}")
     header, body = split_message(payload)
