@@ -2,10 +2,17 @@
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections import deque
 from dataclasses import dataclass
+
+from perception.frame import Frame, FrameRejected
+from service.protocol import Limits, decode_frame
+from service.stats import ServiceStats
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -71,3 +78,20 @@ class IngestQueue:
     def __len__(self) -> int:
         with self._cond:
             return len(self._items)
+
+
+def decode_counted(payload: bytes, limits: Limits, stats: ServiceStats) -> Frame | None:
+    """The decoded frame, or None when it was rejected (counted by reason) or decoding failed (counted)."""
+    t0 = time.monotonic()
+    try:
+        frame = decode_frame(payload, limits)
+    except FrameRejected as exc:
+        stats.count_rejected(exc.reason.value)
+        log.debug("rejected frame: %s", exc)
+        return None
+    except Exception:  # the decoder must survive anything a message can trigger
+        log.exception("unexpected error while decoding a frame")
+        stats.count_error("internal")
+        return None
+    stats.time("decode", time.monotonic() - t0)
+    return frame

@@ -26,11 +26,11 @@ from graph.pose_graph import SolverError
 from graph.trajectory import Trajectory
 from perception.frame import Frame
 from service.config import Settings
-from service.ingest import IngestQueue
+from service.ingest import IngestQueue, decode_counted
 from service.map_summary import MapSummary, loop_events, summarize
 from service.outputs import run_summary, write_outputs
 from service.persistence import Persistence
-from service.protocol import VERSION, FrameRejected, decode_frame
+from service.protocol import VERSION, FrameRejected
 from service.save_requests import SaveRequests
 from service.scheduler import ThreadedRunner
 from service.stats import ServiceStats
@@ -95,20 +95,37 @@ class ServiceNode:
         self._entities.append(s.declare_queryable(f"{p}/save", self.saves.enqueue))
         self.events = s.declare_publisher(f"{p}/events")
         self._entities.append(self.events)
+        self.start_threads()
+        log.info("serving %s (protocol v%d)", p, VERSION)
+
+    def start_threads(self) -> None:
+        """Start the decoder and the worker (``start`` does, after declaring the zenoh entities)."""
         self._decoder.start()
         self._worker.start()
-        log.info("serving %s (protocol v%d)", p, VERSION)
+
+    def stop_threads(self, timeout: float = 10.0) -> bool:
+        """Stop the decoder and the worker after the current frame; True when both stopped in time."""
+        self._stop.set()
+        for thread in (self._decoder, self._worker):
+            if thread.is_alive():
+                thread.join(timeout=timeout)
+        return not self.working
+
+    @property
+    def working(self) -> bool:
+        """The worker thread is running."""
+        return self._worker.is_alive()
+
+    def hold_core(self) -> threading.Lock:
+        """The lock the worker holds while the core processes a frame (``with node.hold_core(): ...``)."""
+        return self._lock
 
     def stop(self) -> None:
         """Stop taking frames, stop the worker after the current frame, count the frames still queued as dropped,
         write a last snapshot, and undeclare the other zenoh entities."""
         if self._entities:  # the frame subscriber (declared first): nothing arrives after this
             self._undeclare(self._entities.pop(0))
-        self._stop.set()
-        for thread in (self._decoder, self._worker):
-            if thread.is_alive():
-                thread.join(timeout=10)
-        if self._worker.is_alive():
+        if not self.stop_threads():
             log.error("the worker did not stop within 10 s: no final snapshot, the last periodic one stands")
         else:
             self._discard_queued()
@@ -176,7 +193,7 @@ class ServiceNode:
             item = self.queue.get(timeout=0.1)
             if item is None:
                 continue
-            frame = self._decode(item.payload)
+            frame = decode_counted(item.payload, self.limits, self.stats)
             if frame is None:
                 self._completed_one()
                 continue
@@ -188,22 +205,6 @@ class ServiceNode:
                     if self._stop.is_set():  # stopping with the worker's queue full: counted as dropped
                         self.queue.count_dropped(1)
                         break
-
-    def _decode(self, payload: bytes) -> Frame | None:
-        """The decoded frame, or None when it was rejected (counted by reason) or decoding failed."""
-        t0 = time.monotonic()
-        try:
-            frame = decode_frame(payload, self.limits)
-        except FrameRejected as exc:
-            self.stats.count_rejected(exc.reason.value)
-            log.debug("rejected frame: %s", exc)
-            return None
-        except Exception:  # the decoder must survive anything a message can trigger
-            log.exception("unexpected error while decoding a frame")
-            self.stats.count_error("internal")
-            return None
-        self.stats.time("decode", time.monotonic() - t0)
-        return frame
 
     def _work(self) -> None:
         """Worker thread: decoded frames through the SLAM core, one at a time; ``save`` requests between them."""

@@ -110,7 +110,7 @@ def test_ten_thousand_bad_frames_are_each_counted_by_reason_and_good_frames_keep
         f"\nfuzz: {sent} frames, by class {dict(sorted(by_class.items()))}\nstatus: processed "
         f"{status['frames_processed']}, rejected {status['frames_rejected']}, dropped {status['frames_dropped']}"
     )
-    assert node._worker.is_alive()
+    assert node.working
     assert status["frames_received"] == sent >= STORM
     assert status["errors"] == {}
     assert status["frames_received"] == (

@@ -26,7 +26,6 @@ from service.persistence import HEADER, Persistence, SnapshotError, SnapshotStor
 from service.protocol import decode_frame, encode_frame
 from service.replay import frame_publisher
 from service.zenoh_session import open_session
-from service.scheduler import ThreadedRunner
 from slam.build import build_core
 from slam.snapshot import core_state, restore_core
 from sources import open_dataset
@@ -331,9 +330,7 @@ def test_frames_still_queued_at_stop_are_counted_as_dropped_in_the_final_snapsho
         node = ServiceNode(settings, session)
         node.start()
         _feed(node, session, payloads[:5])
-        node._stop.set()  # decoder and worker stop; three more frames arrive before the entities are undeclared
-        node._decoder.join(timeout=10)
-        node._worker.join(timeout=10)
+        assert node.stop_threads()  # three more frames arrive before the entities are undeclared
         for payload in payloads[5:8]:
             node.stats.count_received()
             node.submit(payload)
