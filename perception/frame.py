@@ -7,18 +7,7 @@ from enum import Enum
 
 import numpy as np
 
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics in pixels."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    def matrix(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+from perception.camera import Intrinsics  # also the name snapshots of 0.1.0 give it: perception.frame.Intrinsics
 
 
 @dataclass(frozen=True)

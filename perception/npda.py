@@ -19,6 +19,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.special import erfc, ndtri
 from scipy.stats import rankdata
 
+from perception.camera import Intrinsics
 from perception.features import box_window, stride_subsample
 from perception.frame import Detection
 from perception.warp import MIN_Z_M, image_boxes, in_view, moved_box_points, needs_warp, warp_depth
@@ -221,7 +222,7 @@ def associate(
     prev_depth: np.ndarray,
     cur_dets: Sequence[Detection],
     cur_depth: np.ndarray,
-    K: np.ndarray,
+    K: Intrinsics,
     T_cur_prev: np.ndarray | None,
     config: NPDAConfig,
 ) -> Association:
@@ -265,7 +266,7 @@ def out_of_view_scores(
     prev_points: Sequence[np.ndarray],
     cur_dets: Sequence[Detection],
     cur_depth: np.ndarray,
-    K: np.ndarray,
+    K: Intrinsics,
     config: NPDAConfig,
 ) -> dict[int, np.ndarray]:
     """Rows of A for the previous boxes whose object points (``prev_points``: moved into the current camera,

@@ -8,6 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from graph.geometry import inverse
+from perception.camera import Intrinsics
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
 from perception.features import (
     FeatureConfig,
@@ -38,7 +39,7 @@ class _Keyframe:
 
 
 class ObjectMapper:
-    """Objects from keyframe detections. ``add_keyframe`` takes colour-registered depth, the colour K and
+    """Objects from keyframe detections. ``add_keyframe`` takes colour-registered depth, the colour intrinsics and
     the colour camera's camera-to-world pose; only the previous keyframe's depth is kept.
 
     Every observation is also kept in its camera frame with its keyframe (the observation store), and every
@@ -65,7 +66,7 @@ class ObjectMapper:
         with enough depth whose box the image border does not cut (a cut box measures part of the object)."""
 
     def add_keyframe(
-        self, index: int, detections: list[Detection], depth_m: np.ndarray, K: np.ndarray, pose: np.ndarray
+        self, index: int, detections: list[Detection], depth_m: np.ndarray, K: Intrinsics, pose: np.ndarray
     ) -> bool:
         """Associate, extend tracks, store feature vectors, re-cluster when due; True if it re-clustered."""
         pairs = []

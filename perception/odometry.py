@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 
 from graph.geometry import inverse
+from perception.camera import pixels_to_points
 from perception.frame import CameraModel, Frame
 from perception.registration import depth_at_color_pixels
 
@@ -100,7 +101,7 @@ class FeatureExtractor:
         z = depth_at_color_pixels(px, depth_m, self.camera, max_edge_ratio=cfg.max_edge_ratio)
         with np.errstate(invalid="ignore"):
             z[(z < cfg.min_depth_m) | (z > cfg.max_depth_m)] = np.nan
-        return np.stack([(px[:, 0] - c.cx) / c.fx * z, (px[:, 1] - c.cy) / c.fy * z, z], axis=1).astype(np.float32)
+        return pixels_to_points(px[:, 0], px[:, 1], z, c).astype(np.float32)
 
 
 class RelativePoseEstimator:
