@@ -82,11 +82,8 @@ class LoopCloser:
         self.places = PlaceIndex()
         self.keyframes: dict[int, KeyframeEntry] = {}
         c = self.config
-        self.verify_config = replace(
-            self.estimator.config,
-            min_matches=c.min_inliers,
-            min_inliers=c.min_inliers,
-            max_residual_px=c.max_residual_px,
+        self.verify_config = self.estimator.config.model_copy(
+            update={"min_matches": c.min_inliers, "min_inliers": c.min_inliers, "max_residual_px": c.max_residual_px}
         )
 
     @property

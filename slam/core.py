@@ -24,9 +24,9 @@ from graph.window import WindowedGraph, WindowSettings
 from loops.closer import KeyframeEntry, LoopCloser, LoopConfig, Verified
 from perception.clustering import ObjectEllipsoid
 from perception.frame import CameraModel, Detection, Frame, FrameRejected, Reason
-from perception.frontend import ExternalOdometry, KeyframePolicy, Step, VisualOdometry
+from perception.frontend import ExternalOdometry, Step, VisualOdometry
 from perception.object_map import ObjectMapper, object_json
-from perception.odometry import FeatureExtractor, OdometryConfig, RelativePoseEstimator
+from perception.odometry import FeatureExtractor, RelativePoseEstimator
 from perception.registration import backproject, depth_in_color
 from rl.proposer import PolicyProposer
 from service.config import Settings
@@ -142,8 +142,8 @@ class Pipeline:
         self.graph = WindowedGraph(
             from_settings(NoiseSettings, settings.graph), from_settings(WindowSettings, settings.graph)
         )
-        self.policy = from_settings(KeyframePolicy, settings.keyframes, settings.odometry)
-        self.odometry_config = from_settings(OdometryConfig, settings.odometry)
+        self.policy = settings.keyframes
+        self.odometry_config = settings.odometry
         self.frontend: ExternalOdometry | VisualOdometry | None = None
         self._camera: CameraModel | None = None
         self.loops: LoopCloser | None = None
@@ -448,9 +448,9 @@ class Pipeline:
 
     def _get_detector(self):
         if self._detector is None:
-            from perception.detector import Detector, DetectorConfig
+            from perception.detector import Detector
 
-            self._detector = Detector(from_settings(DetectorConfig, self.settings.detector))
+            self._detector = Detector(self.settings.detector)
         return self._detector
 
     def trajectory(self) -> Trajectory:
