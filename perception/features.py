@@ -109,7 +109,7 @@ def dominant_depth_mask(depths: np.ndarray, anchor: float, gap_m: float) -> np.n
         return np.zeros(len(depths), bool)
     s = np.sort(depths)
     breaks = np.flatnonzero(np.diff(s) > gap_m)  # segment j spans (breaks[j-1], breaks[j]]
-    seg = np.searchsorted(breaks, min(np.searchsorted(s, anchor), len(s) - 1))
+    seg = np.searchsorted(breaks, min(int(np.searchsorted(s, anchor)), len(s) - 1))
     lo = breaks[seg - 1] + 1 if seg > 0 else 0
     hi = breaks[seg] + 1 if seg < len(breaks) else len(s)
     # equal depths never straddle a break, so the segment is exactly the depths within its value range
@@ -145,7 +145,8 @@ def room_behind(
     some = stride_subsample(len(rows), surface.size)  # enough to mark most cells the object covers
     r, c = rows[some], cols[some]
     surface[(r - y1) // step, (c - x1) // step] = depth_m[r, c]
-    iy1, iy2, ix1, ix2 = (-(-(v - o) // step) for v, o in zip(inner, (y1, y1, x1, x1)))  # first grid cell at/after
+    # the first grid cell at or after each edge of the box
+    iy1, iy2, ix1, ix2 = (-(-(v - o) // step) for v, o in zip(inner, (y1, y1, x1, x1), strict=True))
     patch[iy1:iy2, ix1:ix2] = np.nan  # the ring only
     is_surface = np.isfinite(surface)
     if not is_surface.any():

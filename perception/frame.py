@@ -79,7 +79,7 @@ class Frame:
         return self._depth_m
 
 
-class Reason(str, Enum):
+class Reason(str, Enum):  # noqa: UP042 - str() of a member stays "Reason.X" as in 0.1.0 (StrEnum gives the value)
     """Why a frame was rejected; the values are the keys of ``frames_rejected`` in status."""
 
     TRUNCATED = "truncated"

@@ -77,6 +77,8 @@ class ExternalOdometry:
 
     def track(self, frame: Frame) -> Step:
         pose = frame.odometry
+        if pose is None:
+            raise ValueError("external odometry needs frames that carry odometry")
         if self._kf_pose is None:
             self._kf_pose, self._since = pose, 0
             return Step(pose, True)
@@ -137,14 +139,15 @@ class VisualOdometry:
     def track(self, frame: Frame) -> Step:
         features = self.extractor.extract(frame)
         depth = frame.depth_m()
-        if self._kf_pose is None:
+        kf_pose, kf_features, kf_depth = self._kf_pose, self._kf_features, self._kf_depth
+        if kf_pose is None or kf_features is None or kf_depth is None:  # the first frame (all three or none)
             return self._new_keyframe(np.eye(4), features, depth, Step(np.eye(4), True, features=features))
         self._since += 1
         try:
-            rel = self.estimator.estimate(self._kf_features, features)
+            rel = self.estimator.estimate(kf_features, features)
         except Rejected as exc:
-            return self._lost(frame, features, depth, exc)
-        pose = self._kf_pose @ rel.T_a_b
+            return self._lost(frame, kf_pose, features, depth, exc)
+        pose = kf_pose @ rel.T_a_b
         self._last_pose = pose
         trans, rot = motion_magnitude(rel.T_a_b)
         p = self.policy
@@ -154,8 +157,8 @@ class VisualOdometry:
             or self._since >= p.max_interval
             or rel.inliers < p.min_inliers
         ):
-            T = self._refine(rel.T_a_b, depth, self._kf_depth)
-            pose = self._kf_pose @ T
+            T = self._refine(rel.T_a_b, depth, kf_depth)
+            pose = kf_pose @ T
             step = Step(
                 pose,
                 True,
@@ -193,23 +196,23 @@ class VisualOdometry:
         self.icp_used += 1
         return result.T
 
-    def _lost(self, frame: Frame, features: Features, depth: np.ndarray, exc: Rejected) -> Step:
+    def _lost(self, frame: Frame, kf_pose: np.ndarray, features: Features, depth: np.ndarray, exc: Rejected) -> Step:
         self.lost_count += 1
         log.warning("tracking lost at t=%.3f (%s); re-initialising with a weak factor", frame.timestamp, exc)
         pose = self._last_pose
         scale = self.config.lost_sigma_scale
-        step = Step(pose, True, relative(self._kf_pose, pose), 0.05 * scale, 2.0 * scale, lost=True, features=features)
+        step = Step(pose, True, relative(kf_pose, pose), 0.05 * scale, 2.0 * scale, lost=True, features=features)
         return self._new_keyframe(pose, features, depth, step)
 
     def _new_keyframe(self, pose: np.ndarray, features: Features, depth: np.ndarray, step: Step) -> Step:
-        if self._kf_features is not None and not step.lost:
+        if step.lost:
+            self._history = []
+        elif self._kf_features is not None and self._kf_depth is not None:  # not the first keyframe
             self._history = (
-                (self._history + [(self._kf_features, self._kf_depth)])[-(self.policy.skip_edges - 1) :]
+                [*self._history, (self._kf_features, self._kf_depth)][-(self.policy.skip_edges - 1) :]
                 if self.policy.skip_edges > 1
                 else []
             )
-        elif step.lost:
-            self._history = []
         self._kf_pose, self._kf_features, self._kf_depth = pose, features, depth
         self._since, self._last_pose = 0, pose
         return step

@@ -99,7 +99,7 @@ class FeatureExtractor:
     def __init__(self, camera: CameraModel, config: OdometrySettings | None = None):
         self.camera = camera
         self.config = config = config if config is not None else OdometrySettings()
-        self.orb = cv2.ORB_create(config.n_features, scaleFactor=1.2, nlevels=8, fastThreshold=12)
+        self.orb = cv2.ORB.create(config.n_features, scaleFactor=1.2, nlevels=8, fastThreshold=12)
 
     def extract(self, frame: Frame) -> Features:
         """Keypoints, descriptors and 3D points of ``frame``."""
@@ -174,6 +174,6 @@ class RelativePoseEstimator:
             if len(pair) == 2 and pair[0].distance < cfg.ratio * pair[1].distance:
                 ia.append(valid[pair[0].queryIdx])
                 ib.append(pair[0].trainIdx)
-        ia, ib = np.asarray(ia, int), np.asarray(ib, int)
-        _, first = np.unique(ib, return_index=True)  # one match per b keypoint
-        return ia[first], ib[first]
+        qa, qb = np.asarray(ia, int), np.asarray(ib, int)
+        _, first = np.unique(qb, return_index=True)  # one match per b keypoint
+        return qa[first], qb[first]
