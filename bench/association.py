@@ -16,6 +16,7 @@ from rich.console import Console
 
 from bench.report import markdown_table, record, show_table
 from graph.geometry import inverse, motion_magnitude
+from perception.camera import Intrinsics
 from perception.clustering import ClusterConfig, Clusterer, bhattacharyya_matrix, cluster_labels
 from perception.features import FeatureVector
 from perception.frame import Detection
@@ -39,7 +40,7 @@ TABLE_2_2 = [
 class Scene:
     """One synthetic sequence held in memory: intrinsics, true poses, depth, detections, true ids."""
 
-    K: np.ndarray
+    K: Intrinsics
     poses: np.ndarray
     depth: list[np.ndarray]
     dets: list[list[Detection]]
@@ -83,7 +84,7 @@ def load_scene(seed: int, frames: int) -> Scene:
         depth.append(f.depth)
         dets.append(list(f.detections or []))
         ids.append(data.detection_instance_ids(i))
-    return Scene(data.camera.color.matrix(), data.ground_truth.poses, depth, dets, ids, data.objects)
+    return Scene(data.camera.color, data.ground_truth.poses, depth, dets, ids, data.objects)
 
 
 def keyframe_step(frames: int) -> int:

@@ -16,7 +16,7 @@ from rich.console import Console
 from rich.table import Table
 
 from bench.report import markdown_table, record
-from perception.detector import Detector, DetectorConfig
+from perception.detector import Detector, DetectorSettings
 from perception.frame import Detection
 from sources import open_dataset
 
@@ -97,14 +97,14 @@ def sheet_path(kind: str, first: bool) -> Path:
     return SHEET_FILE if first else SHEET_FILE.with_name(f"{SHEET_FILE.stem}_{kind}{SHEET_FILE.suffix}")
 
 
-def model_name(config: DetectorConfig) -> str:
+def model_name(config: DetectorSettings) -> str:
     """The model's kind, plus the input when CenterNet runs on an input fitted to the image (``fit_aspect``)."""
     return config.kind + (
         " (fit_aspect: 512 x 384 input for 4:3)" if config.kind == "centernet" and config.fit_aspect else ""
     )
 
 
-def measure(dataset_dir: str, every: int, configs: list[DetectorConfig]) -> list[ModelRun]:
+def measure(dataset_dir: str, every: int, configs: list[DetectorSettings]) -> list[ModelRun]:
     """Run each detector on every ``every``-th frame, interleaved per frame so load drift hits all alike."""
     data = open_dataset(dataset_dir)
     indices = list(range(0, len(data), every))
@@ -139,13 +139,13 @@ def _write_sheet(run: ModelRun, path: Path) -> Path:
 
 
 def run_detector_bench(
-    console: Console, dataset_dir: str, every: int, write: Path | None, configs: list[DetectorConfig] | None = None
+    console: Console, dataset_dir: str, every: int, write: Path | None, configs: list[DetectorSettings] | None = None
 ) -> dict:
     """Measure each detector (default: both shipped models), print and record the tables, save contact sheets."""
     configs = configs or [
-        DetectorConfig(kind="centernet"),
-        DetectorConfig(kind="nanodet"),
-        DetectorConfig(kind="centernet", fit_aspect=True),
+        DetectorSettings(kind="centernet"),
+        DetectorSettings(kind="nanodet"),
+        DetectorSettings(kind="centernet", fit_aspect=True),
     ]
     started = time.monotonic()
     runs = measure(dataset_dir, every, configs)

@@ -15,8 +15,8 @@ from rich.console import Console
 
 from bench.report import markdown_table, record
 from evaluation.trajectory_metrics import trajectory_error
-from perception.frontend import KeyframePolicy, VisualOdometry
-from perception.odometry import Features
+from perception.frontend import KeyframeSettings, VisualOdometry
+from perception.odometry import Features, OdometrySettings
 from sources import open_dataset
 
 
@@ -48,7 +48,7 @@ def measure(dataset: str, frames: int) -> list[list[object]]:
         ("ORB + PnP + depth ICP at keyframes", True, False),
         ("SIFT + PnP-RANSAC + LM", False, True),
     ):
-        vo = VisualOdometry(data.camera, KeyframePolicy(icp=icp))
+        vo = VisualOdometry(data.camera, KeyframeSettings(), OdometrySettings(icp=icp))
         if sift:
             _sift(vo)
         t0 = time.perf_counter()

@@ -40,8 +40,8 @@ class LoopCloser:
         self.keyframes: dict[int, KeyframeEntry] = {}
         self.acceptance = LoopAcceptance(graph, self.settings)
         s = self.settings
-        self.verify_config = replace(
-            estimator.config, min_matches=s.min_inliers, min_inliers=s.min_inliers, max_residual_px=s.max_residual_px
+        self.verify_config = estimator.config.model_copy(
+            update={"min_matches": s.min_inliers, "min_inliers": s.min_inliers, "max_residual_px": s.max_residual_px}
         )
 
     @property

@@ -11,7 +11,7 @@ import math
 from graph.geometry import motion_magnitude, pose_to_tum
 from loops.records import Candidate, KeyframeEntry, LoopRecord, Source, Verified
 from loops.settings import LoopSettings
-from perception.odometry import OdometryConfig, Rejected, RelativePoseEstimator
+from perception.odometry import OdometrySettings, Rejected, RelativePoseEstimator
 
 
 def new_record(match: KeyframeEntry, query: KeyframeEntry, candidate: Candidate) -> LoopRecord:
@@ -36,7 +36,7 @@ def verify(
     query: KeyframeEntry,
     candidate: Candidate,
     estimator: RelativePoseEstimator,
-    config: OdometryConfig,
+    config: OdometrySettings,
     settings: LoopSettings,
 ) -> Verified:
     """PnP-RANSAC between the two keyframes (with the loop thresholds in ``config``) and the viewpoint check."""

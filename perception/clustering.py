@@ -67,7 +67,11 @@ def bhattacharyya(mu_a: np.ndarray, var_a: np.ndarray, mu_b: np.ndarray, var_b: 
 
 
 def bhattacharyya_matrix(
-    means: np.ndarray, variances: np.ndarray, labels: Sequence[str], penalty: float = 100.0, var_floor: float = 1e-4
+    means: np.ndarray,
+    variances: np.ndarray,
+    labels: Sequence[str] | np.ndarray,
+    penalty: float = 100.0,
+    var_floor: float = 1e-4,
 ) -> np.ndarray:
     """D (N, N) of Sec. 2.4.5: per-axis Bhattacharyya distances summed, plus g for class mismatch (float32).
 
@@ -194,7 +198,7 @@ def merge_track_runs(features: Sequence[FeatureVector], run: int) -> list[Featur
     cov = s2 / s0[:, None, None] - mean[:, :, None] * mean[:, None, :]
     first = np.unique(group, return_index=True)[1]
     sources: list[list[int]] = [[] for _ in range(g)]
-    for k, i in zip(group, order):
+    for k, i in zip(group, order, strict=True):
         sources[k].extend(features[i].sources)
     return [
         FeatureVector(
@@ -269,7 +273,7 @@ class Clusterer:
 
     def step(self, observations: Sequence[FeatureVector | None], associated: Sequence[bool]) -> bool:
         """Count the associated observations that fit / miss the objects (eq. 2.15); re-cluster when due."""
-        for f, in_m in zip(observations, associated):
+        for f, in_m in zip(observations, associated, strict=True):
             if f is None or not in_m:
                 continue
             fits = (
@@ -296,7 +300,8 @@ class Clusterer:
         self._compact()
         labels = cluster_labels(self.features, self.config) if self.features else np.zeros(0, int)
         clusters = [
-            [f for f, c in zip(self.features, labels) if c == k] for k in range(int(labels.max(initial=-1)) + 1)
+            [f for f, c in zip(self.features, labels, strict=True) if c == k]
+            for k in range(int(labels.max(initial=-1)) + 1)
         ]
         clusters = merge_overlapping(clusters, self.config) if self.config.merge_distance > 0 else clusters
         self.objects = self._carry_ids(sorted(clusters, key=len, reverse=True))

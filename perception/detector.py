@@ -1,6 +1,6 @@
 """The object detector (SPEC 6.1): an ONNX COCO model run with onnxruntime, decoded into Detections.
 
-Three output layouts are supported, chosen by ``DetectorConfig.kind``: the shipped CenterNet
+Three output layouts are supported, chosen by ``DetectorSettings.kind``: the shipped CenterNet
 (default), the shipped NanoDet, and an ultralytics YOLO ONNX export supplied by the user.
 See ``docs/detector.md`` and ``models/NOTICE.md``.
 """
@@ -10,12 +10,12 @@ from __future__ import annotations
 import ast
 import logging
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import onnxruntime as ort
+from pydantic import BaseModel, ConfigDict, Field
 
 from perception.centernet_input import ReshapeError, reshaped_centernet
 from perception.coco import COCO_CLASSES
@@ -68,35 +68,52 @@ DEFAULT_CLASS_THRESHOLDS: dict[str, dict[str, float]] = {
 }
 
 
-@dataclass(frozen=True)
-class DetectorConfig:
-    """What model to run and how to filter its output."""
+class DetectorSettings(BaseModel):
+    """The ONNX object detector (SPEC 6.1), used on keyframes whose frames carry no detections: what model to
+    run and how to filter its output."""
 
-    model: Path | None = None
-    """ONNX file; None = the shipped model for ``kind`` in ``models/``."""
-    kind: DetectorKind = "centernet"
-    """Output layout: "centernet" and "nanodet" (shipped, COCO-80) or "yolo" (ultralytics export)."""
-    threads: int = 2
-    """onnxruntime intra-op threads."""
-    score_threshold: float | None = None
-    """Minimum score for classes without a per-class threshold; None = the tuned default for ``kind``."""
-    class_thresholds: dict[str, float] | None = None
-    """Per-class minimum scores by label, replacing the defaults; None = the tuned defaults for ``kind``."""
-    nms_iou: float = 0.5
-    """Class-aware NMS: a box is dropped when its IoU with a better box of its class exceeds this."""
-    max_detections: int = 50
-    """At most this many detections per image, best first."""
-    classes: tuple[str, ...] | None = None
-    """Allow-list of labels to report; None = all."""
-    input_size: int | None = None
-    """Square network input side; None = read from the model (or 512 / 416 / 640 when dynamic)."""
-    fit_aspect: bool = False
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    enabled: bool = Field(default=True, description="run on keyframes whose frames carry no detections")
+    kind: DetectorKind = Field(
+        default="centernet",
+        description='output layout: "centernet" and "nanodet" (shipped, COCO-80) or "yolo" (ultralytics)',
+    )
+    model: Path | None = Field(default=None, description="ONNX file; empty = the shipped model of `kind` in models/")
+    threads: int = Field(default=2, ge=1, description="onnxruntime intra-op threads")
+    score_threshold: float | None = Field(
+        default=None,
+        ge=0,
+        le=1,
+        description="minimum score of classes without a per-class one; empty = tuned default of `kind`",
+    )
+    class_thresholds: dict[str, float] | None = Field(
+        default=None,
+        description="per-class minimum scores by label, replacing the defaults; empty = tuned defaults of `kind`",
+    )
+    nms_iou: float = Field(
+        default=0.5,
+        gt=0,
+        le=1,
+        description="class-aware NMS: a box is dropped when its IoU with a better one exceeds this",
+    )
+    max_detections: int = Field(default=50, ge=1, description="at most this many detections per image, best first")
+    classes: tuple[str, ...] | None = Field(default=None, description="allow-list of labels to report; empty = all")
+    input_size: int | None = Field(
+        default=None, ge=32, description="square network input side; empty = the model's (512 / 416 / 640 when dynamic)"
+    )
+    fit_aspect: bool = Field(
+        default=False,
+        description="centernet: a 512-wide input as high as the image's aspect needs "
+        "(512 x 384 for 4:3) instead of the letterboxed 512 x 512: faster, fewer detections",
+    )
     """CenterNet: letterbox into an input ``input_size`` wide and as high as the image's aspect needs (a
     multiple of 32: 512 x 384 for 4:3), running the network reshaped for it (``centernet_input``), instead
     of into the square. A quarter less computation for 4:3 cameras, but fewer detections (on 7-Scenes 9 %
     fewer, objects touching the image border score lower): off by default (`objslam bench detector`)."""
-    class_names: tuple[str, ...] | None = None
-    """Labels by class index; None = the model's ``names`` metadata (ultralytics) or COCO-80."""
+    class_names: tuple[str, ...] | None = Field(
+        default=None, description="labels by class index; empty = the model's `names` metadata (ultralytics) or COCO-80"
+    )
 
     def thresholds(self) -> tuple[float, dict[str, float]]:
         """The score floor and the per-class thresholds in effect (defaults for ``kind`` filled in)."""
@@ -137,8 +154,8 @@ def _metadata_names(session: ort.InferenceSession) -> tuple[str, ...] | None:
 class Detector:
     """Runs one ONNX detector on RGB images; ``last_ms`` is the time of the latest ``detect`` call."""
 
-    def __init__(self, config: DetectorConfig | None = None) -> None:
-        self.config = config or DetectorConfig()
+    def __init__(self, config: DetectorSettings | None = None) -> None:
+        self.config = config if config is not None else DetectorSettings()
         if self.config.kind not in DEFAULT_INPUT_SIZE:
             raise ValueError(
                 f"unknown detector kind {self.config.kind!r}; expected one of {sorted(DEFAULT_INPUT_SIZE)}"

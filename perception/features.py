@@ -1,7 +1,7 @@
 """Back-projection of detections and object feature vectors f = {X, Y, Z, S} (Sec. 2.4.4, SPEC 6.5).
 
 Depth images are float metres with NaN where invalid; boxes are [x1, y1, x2, y2] in pixels; poses are
-camera-to-world 4x4 (OpenCV camera axes).
+camera-to-world 4x4 (OpenCV camera axes); ``K`` is the camera's ``Intrinsics``.
 """
 
 from __future__ import annotations
@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import distance_transform_edt
+
+from perception.camera import Intrinsics, pixels_to_points
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +109,7 @@ def dominant_depth_mask(depths: np.ndarray, anchor: float, gap_m: float) -> np.n
         return np.zeros(len(depths), bool)
     s = np.sort(depths)
     breaks = np.flatnonzero(np.diff(s) > gap_m)  # segment j spans (breaks[j-1], breaks[j]]
-    seg = np.searchsorted(breaks, min(np.searchsorted(s, anchor), len(s) - 1))
+    seg = np.searchsorted(breaks, min(int(np.searchsorted(s, anchor)), len(s) - 1))
     lo = breaks[seg - 1] + 1 if seg > 0 else 0
     hi = breaks[seg] + 1 if seg < len(breaks) else len(s)
     # equal depths never straddle a break, so the segment is exactly the depths within its value range
@@ -143,7 +145,8 @@ def room_behind(
     some = stride_subsample(len(rows), surface.size)  # enough to mark most cells the object covers
     r, c = rows[some], cols[some]
     surface[(r - y1) // step, (c - x1) // step] = depth_m[r, c]
-    iy1, iy2, ix1, ix2 = (-(-(v - o) // step) for v, o in zip(inner, (y1, y1, x1, x1)))  # first grid cell at/after
+    # the first grid cell at or after each edge of the box
+    iy1, iy2, ix1, ix2 = (-(-(v - o) // step) for v, o in zip(inner, (y1, y1, x1, x1), strict=True))
     patch[iy1:iy2, ix1:ix2] = np.nan  # the ring only
     is_surface = np.isfinite(surface)
     if not is_surface.any():
@@ -197,12 +200,9 @@ def complete_amodal(
     return FeatureVector(mean, cov, f.n, label, track_id, f.sources)
 
 
-def backproject(depth_m: np.ndarray, K: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Camera-frame points (N, 3) of the pixels (rows, cols) with depth, pinhole model."""
-    z = depth_m[rows, cols].astype(np.float64)
-    x = (cols - K[0, 2]) / K[0, 0] * z
-    y = (rows - K[1, 2]) / K[1, 1] * z
-    return np.stack([x, y, z], axis=1)
+def depth_points(depth_m: np.ndarray, K: Intrinsics, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Camera-frame points (N, 3, float64) of the pixels (rows, cols) of a depth image."""
+    return pixels_to_points(cols, rows, depth_m[rows, cols].astype(np.float64), K)
 
 
 def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -235,7 +235,7 @@ def ring_pixels(
 
 def support_plane(
     depth_m: np.ndarray,
-    K: np.ndarray,
+    K: Intrinsics,
     box: Box,
     max_tilt_deg: float,
     inlier_m: float = 0.01,
@@ -253,7 +253,7 @@ def support_plane(
     valid = np.isfinite(depth_m[rows, cols])
     if valid.sum() < 50:
         return None
-    points = backproject(depth_m, K, rows[valid], cols[valid])
+    points = depth_points(depth_m, K, rows[valid], cols[valid])
     triplets = points[np.random.default_rng(0).integers(0, len(points), (hypotheses, 3))]
     normals = np.cross(triplets[:, 1] - triplets[:, 0], triplets[:, 2] - triplets[:, 0])
     length = np.linalg.norm(normals, axis=1)
@@ -273,7 +273,7 @@ def support_plane(
 
 def without_support(
     depth_m: np.ndarray,
-    K: np.ndarray,
+    K: Intrinsics,
     box: Box,
     rows: np.ndarray,
     cols: np.ndarray,
@@ -291,33 +291,33 @@ def without_support(
     plane = support_plane(depth_m, K, box, config.support_tilt_deg)
     if plane is None:
         return rows, cols
-    off = np.abs(backproject(depth_m, K, rows, cols) @ plane[:3] + plane[3]) > config.support_tolerance_m
+    off = np.abs(depth_points(depth_m, K, rows, cols) @ plane[:3] + plane[3]) > config.support_tolerance_m
     return (rows[off], cols[off]) if off.sum() >= min_left * len(rows) else (rows, cols)
 
 
-def object_points(depth_m: np.ndarray, K: np.ndarray, box: Box, config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
+def object_points(depth_m: np.ndarray, K: Intrinsics, box: Box, config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
     """A detection's object pixels: its depth segment (``object_pixels``) without its support surface."""
     rows, cols = object_pixels(depth_m, box, config)
     return without_support(depth_m, K, box, rows, cols, config)
 
 
 def backproject_detection(
-    depth_m: np.ndarray, K: np.ndarray, T_wc: np.ndarray, box: Box, config: FeatureConfig
+    depth_m: np.ndarray, K: Intrinsics, T_wc: np.ndarray, box: Box, config: FeatureConfig
 ) -> np.ndarray:
     """World points (N, 3) of a detection's object pixels with the camera pose ``T_wc`` (Sec. 2.4.4)."""
     rows, cols = object_points(depth_m, K, box, config)
     idx = stride_subsample(len(rows), config.max_points)
-    return transform(T_wc, backproject(depth_m, K, rows[idx], cols[idx]))
+    return transform(T_wc, depth_points(depth_m, K, rows[idx], cols[idx]))
 
 
 def detection_feature(
-    depth_m: np.ndarray, K: np.ndarray, box: Box, label: str, track_id: int, config: FeatureConfig
+    depth_m: np.ndarray, K: Intrinsics, box: Box, label: str, track_id: int, config: FeatureConfig
 ) -> FeatureVector | None:
     """The camera-frame feature vector of a detection (amodally completed when configured); None when too few
     points."""
     rows, cols = object_points(depth_m, K, box, config)
     idx = stride_subsample(len(rows), config.max_points)
-    points = backproject(depth_m, K, rows[idx], cols[idx])
+    points = depth_points(depth_m, K, rows[idx], cols[idx])
     if config.amodal is None or len(points) < 3:
         return feature_from_points(points, label, track_id)
     return complete_amodal(

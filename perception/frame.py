@@ -7,18 +7,7 @@ from enum import Enum
 
 import numpy as np
 
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics in pixels."""
-
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    def matrix(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+from perception.camera import Intrinsics  # also the name snapshots of 0.1.0 give it: perception.frame.Intrinsics
 
 
 @dataclass(frozen=True)
@@ -90,7 +79,7 @@ class Frame:
         return self._depth_m
 
 
-class Reason(str, Enum):
+class Reason(str, Enum):  # noqa: UP042 - str() of a member stays "Reason.X" as in 0.1.0 (StrEnum gives the value)
     """Why a frame was rejected; the values are the keys of ``frames_rejected`` in status."""
 
     TRUNCATED = "truncated"

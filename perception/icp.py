@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from perception.frame import Intrinsics
+from perception.camera import Intrinsics, pixels_to_points, points_to_pixels
 
 
 @dataclass(frozen=True)
@@ -31,7 +31,7 @@ def vertex_map(depth_m: np.ndarray, K: Intrinsics) -> np.ndarray:
     u = np.arange(w, dtype=np.float32)[None, :]
     v = np.arange(h, dtype=np.float32)[:, None]
     z = np.where(depth_m > 0, depth_m, np.nan).astype(np.float32)
-    return np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], axis=-1)
+    return pixels_to_points(u, v, z, K)
 
 
 def smooth_depth(
@@ -62,8 +62,7 @@ def downsample(depth_m: np.ndarray, K: Intrinsics, factor: int) -> tuple[np.ndar
     """Every ``factor``-th pixel of a depth image and the matching intrinsics."""
     if factor == 1:
         return depth_m, K
-    # pixel u of the subsampled image is pixel factor * u of the full one: the principal point scales with it
-    return depth_m[::factor, ::factor], Intrinsics(K.fx / factor, K.fy / factor, K.cx / factor, K.cy / factor)
+    return depth_m[::factor, ::factor], K.subsampled(factor)
 
 
 def project(points: np.ndarray, K: Intrinsics, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
@@ -71,8 +70,8 @@ def project(points: np.ndarray, K: Intrinsics, shape: tuple[int, int]) -> tuple[
     that land inside it, and their flat pixel indices (row * w + column, nearest pixel)."""
     h, w = shape
     with np.errstate(invalid="ignore", divide="ignore"):
-        u = np.round(points[:, 0] / points[:, 2] * K.fx + K.cx)
-        v = np.round(points[:, 1] / points[:, 2] * K.fy + K.cy)
+        u, v = points_to_pixels(points, K)
+        u, v = np.round(u), np.round(v)
     ok = (points[:, 2] > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
     return ok, v[ok].astype(int) * w + u[ok].astype(int)
 

@@ -13,13 +13,16 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from typing import cast
 
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.optimize import linear_sum_assignment
 from scipy.special import erfc, ndtri
 from scipy.stats import rankdata
 
-from perception.features import box_window, stride_subsample
+from perception.camera import Intrinsics
+from perception.features import Box, box_window, stride_subsample
 from perception.frame import Detection
 from perception.warp import MIN_Z_M, image_boxes, in_view, moved_box_points, needs_warp, warp_depth
 
@@ -121,7 +124,7 @@ def box_samples(depth_m: np.ndarray, box: Sequence[float], config: NPDAConfig) -
     The box is read on a regular pixel lattice of about 4 x ``max_samples`` points, and the valid ones
     are thinned by stride to at most ``max_samples``: cost O(max_samples), not O(box area).
     """
-    win = box_window(depth_m.shape, tuple(box), config.box_fraction) if np.all(np.isfinite(box)) else None
+    win = box_window(depth_m.shape, cast(Box, tuple(box)), config.box_fraction) if np.all(np.isfinite(box)) else None
     if win is None:
         return np.zeros(0, np.int64)
     y1, y2, x1, x2 = win
@@ -166,7 +169,7 @@ def u_statistics(prev: Sequence[np.ndarray], cur: Sequence[np.ndarray]) -> tuple
     return u, mn / 2.0, mn * (big_n + 1.0) / 12.0 * (1.0 - tc)
 
 
-def box_iou(a: np.ndarray, b: np.ndarray, over: str = "iou") -> np.ndarray:
+def box_iou(a: ArrayLike, b: ArrayLike, over: str = "iou") -> np.ndarray:
     """Overlap matrix (L, K) of boxes a (L, 4) and b (K, 4): IoU, or intersection over the smaller ("iomin")."""
     a, b = np.asarray(a, float).reshape(-1, 4), np.asarray(b, float).reshape(-1, 4)
     iw = np.minimum(a[:, None, 2], b[None, :, 2]) - np.maximum(a[:, None, 0], b[None, :, 0])
@@ -213,7 +216,9 @@ def assign(scores: np.ndarray, config: NPDAConfig) -> list[tuple[int, int]]:
     else:
         cols = np.arange(scores.shape[1])
         rows = np.argmax(scores, axis=0)
-    return [(int(r), int(c)) for r, c in zip(rows, cols) if scores[r, c] >= config.alpha and scores[r, c] > 0]
+    return [
+        (int(r), int(c)) for r, c in zip(rows, cols, strict=True) if scores[r, c] >= config.alpha and scores[r, c] > 0
+    ]
 
 
 def associate(
@@ -221,7 +226,7 @@ def associate(
     prev_depth: np.ndarray,
     cur_dets: Sequence[Detection],
     cur_depth: np.ndarray,
-    K: np.ndarray,
+    K: Intrinsics,
     T_cur_prev: np.ndarray | None,
     config: NPDAConfig,
 ) -> Association:
@@ -239,8 +244,9 @@ def associate(
     elif config.min_iou > 0:
         moved = np.array([d.box for d in prev_dets], float).reshape(-1, 4)
     if warped:
+        assert T_cur_prev is not None and moved is not None  # warped: the motion is known and the boxes moved
         prev_depth = warp_depth(prev_depth, K, T_cur_prev, step=config.warp_step)
-        prev_dets = [replace(d, box=tuple(b)) for d, b in zip(prev_dets, moved)]
+        prev_dets = [replace(d, box=tuple(b)) for d, b in zip(prev_dets, moved, strict=True)]
         if config.covisible_only:
             both = np.isfinite(prev_depth) & np.isfinite(cur_depth)
             prev_depth, cur_depth = np.where(both, prev_depth, np.nan), np.where(both, cur_depth, np.nan)
@@ -265,7 +271,7 @@ def out_of_view_scores(
     prev_points: Sequence[np.ndarray],
     cur_dets: Sequence[Detection],
     cur_depth: np.ndarray,
-    K: np.ndarray,
+    K: Intrinsics,
     config: NPDAConfig,
 ) -> dict[int, np.ndarray]:
     """Rows of A for the previous boxes whose object points (``prev_points``: moved into the current camera,
@@ -278,8 +284,11 @@ def out_of_view_scores(
     """
     h, w = cur_depth.shape
     rows: dict[int, np.ndarray] = {}
+    gap_m = config.out_of_view_gap_m
+    if gap_m is None:  # no out-of-view test
+        return rows
     current = None
-    for row, (label, points) in enumerate(zip(prev_labels, prev_points)):
+    for row, (label, points) in enumerate(zip(prev_labels, prev_points, strict=True)):
         points = points[points[:, 2] > MIN_Z_M]
         if len(points) < config.min_samples or in_view(points, K, w, h).mean() >= 0.5:
             continue
@@ -308,6 +317,6 @@ def out_of_view_scores(
             if extent is None or len(s) == 0 or (config.class_gate and cur_dets[k].label != label):
                 continue
             gap = np.maximum(0.0, np.maximum(lo - extent[1], extent[0] - hi))
-            valid[k] = float(np.linalg.norm(gap)) <= config.out_of_view_gap_m
+            valid[k] = float(np.linalg.norm(gap)) <= gap_m
         rows[row] = np.where(valid, score, 0.0)
     return rows

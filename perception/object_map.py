@@ -8,6 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from graph.geometry import inverse
+from perception.camera import Intrinsics
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
 from perception.features import (
     FeatureConfig,
@@ -26,7 +27,7 @@ def _weighed(f: FeatureVector | None, whole: bool, cut_weight: float) -> Feature
     """A view's feature vector, its point count scaled by ``cut_weight`` when the image border cuts its box."""
     if f is None or whole:
         return f
-    return replace(f, n=max(1, int(round(f.n * cut_weight))))
+    return replace(f, n=max(1, round(f.n * cut_weight)))
 
 
 @dataclass
@@ -38,7 +39,7 @@ class _Keyframe:
 
 
 class ObjectMapper:
-    """Objects from keyframe detections. ``add_keyframe`` takes colour-registered depth, the colour K and
+    """Objects from keyframe detections. ``add_keyframe`` takes colour-registered depth, the colour intrinsics and
     the colour camera's camera-to-world pose; only the previous keyframe's depth is kept.
 
     Every observation is also kept in its camera frame with its keyframe (the observation store), and every
@@ -48,12 +49,13 @@ class ObjectMapper:
 
     def __init__(
         self,
-        npda: NPDAConfig = NPDAConfig(),
-        clustering: ClusterConfig = ClusterConfig(),
-        features: FeatureConfig = FeatureConfig(),
+        npda: NPDAConfig | None = None,
+        clustering: ClusterConfig | None = None,
+        features: FeatureConfig | None = None,
         tracker: Tracker | None = None,
     ):
-        self.npda, self.features = npda, features
+        self.npda = npda if npda is not None else NPDAConfig()
+        self.features = features if features is not None else FeatureConfig()
         self.tracker = tracker or Tracker()
         self.clusterer = Clusterer(clustering)
         self._prev: _Keyframe | None = None
@@ -65,7 +67,7 @@ class ObjectMapper:
         with enough depth whose box the image border does not cut (a cut box measures part of the object)."""
 
     def add_keyframe(
-        self, index: int, detections: list[Detection], depth_m: np.ndarray, K: np.ndarray, pose: np.ndarray
+        self, index: int, detections: list[Detection], depth_m: np.ndarray, K: Intrinsics, pose: np.ndarray
     ) -> bool:
         """Associate, extend tracks, store feature vectors, re-cluster when due; True if it re-clustered."""
         pairs = []
@@ -85,15 +87,16 @@ class ObjectMapper:
         whole = [not any(cut_by_border(d.box, w, h)) for d in detections]
         local = [
             _weighed(detection_feature(depth_m, K, d.box, d.label, t, self.features), inside, self.features.cut_weight)
-            for d, t, inside in zip(detections, ids, whole)
+            for d, t, inside in zip(detections, ids, whole, strict=True)
         ]
         obs = [None if f is None else transform_feature(self._store(index, f), pose) for f in local]
         self.last_observations = [
             (t, f.mean, float(np.sqrt(np.linalg.eigvalsh(f.cov)[-1])))
-            for f, t, inside in zip(local, ids, whole)
+            for f, t, inside in zip(local, ids, whole, strict=True)
             if f is not None and inside
         ]
-        self.clusterer.add([self.tracker.observe(t, f) for t, f in zip(ids, obs)] + self.tracker.close_stale(index))
+        pooled = [self.tracker.observe(t, f) for t, f in zip(ids, obs, strict=True)]
+        self.clusterer.add([*pooled, *self.tracker.close_stale(index)])
         self._prev = _Keyframe(detections, depth_m, pose, index)
         return self.clusterer.step(obs, [self.tracker.associated(t) for t in ids])
 

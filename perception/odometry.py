@@ -11,29 +11,44 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
 
 from graph.geometry import inverse
+from perception.camera import pixels_to_points
 from perception.frame import CameraModel, Frame
 from perception.registration import depth_at_color_pixels
 
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class OdometryConfig:
-    """Feature extraction and geometric acceptance thresholds."""
+class OdometrySettings(BaseModel):
+    """RGB-D visual odometry, used for frames that carry no odometry: ORB features with depth, the geometric
+    acceptance of a relative pose, its factor's sigmas, and the depth ICP refinement of keyframe poses."""
 
-    n_features: int = 1500
-    ratio: float = 0.8
-    min_matches: int = 30
-    min_inliers: int = 25
-    ransac_px: float = 3.0
-    max_residual_px: float = 2.0
-    min_depth_m: float = 0.2
-    max_depth_m: float = 6.0
-    max_edge_ratio: float | None = 0.02
-    sigma_m_coeff: float = 0.08
-    sigma_deg_coeff: float = 3.0
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    n_features: int = Field(default=1500, ge=100)
+    ratio: float = Field(default=0.8, gt=0, le=1, description="Lowe ratio test")
+    min_matches: int = Field(default=30, ge=6)
+    min_inliers: int = Field(default=25, ge=6)
+    ransac_px: float = Field(default=3.0, gt=0)
+    max_residual_px: float = Field(default=2.0, gt=0)
+    min_depth_m: float = Field(default=0.2, ge=0, description="keypoints nearer than this have no 3D point")
+    max_depth_m: float = Field(default=6.0, gt=0, description="... nor those farther than this")
+    max_edge_ratio: float | None = Field(
+        default=0.02,
+        gt=0,
+        description="... nor those on a depth edge: their 5 x 5 depth neighbourhood has holes or spans this "
+        "fraction of their depth or more; null = no edge test",
+    )
+    lost_sigma_scale: float = Field(default=100.0, ge=1, description="odometry sigma multiplier after tracking loss")
+    icp: bool = Field(default=True, description="refine keyframe-to-keyframe poses by depth point-to-plane ICP")
+    icp_max_correction_m: float = Field(
+        default=0.03, gt=0, description="an ICP result moving the feature-based pose farther than this is not used"
+    )
+    icp_max_correction_deg: float = Field(default=2.0, gt=0, description="... nor one turning it more than this")
+    sigma_m_coeff: float = Field(default=0.08, gt=0, description="factor translation sigma = coeff / sqrt(inliers)")
+    sigma_deg_coeff: float = Field(default=3.0, gt=0, description="factor rotation sigma = coeff / sqrt(inliers)")
 
 
 @dataclass
@@ -81,10 +96,10 @@ class Rejected(Exception):
 class FeatureExtractor:
     """ORB on the colour image; depth at each keypoint from depth registered to colour."""
 
-    def __init__(self, camera: CameraModel, config: OdometryConfig = OdometryConfig()):
+    def __init__(self, camera: CameraModel, config: OdometrySettings | None = None):
         self.camera = camera
-        self.config = config
-        self.orb = cv2.ORB_create(config.n_features, scaleFactor=1.2, nlevels=8, fastThreshold=12)
+        self.config = config = config if config is not None else OdometrySettings()
+        self.orb = cv2.ORB.create(config.n_features, scaleFactor=1.2, nlevels=8, fastThreshold=12)
 
     def extract(self, frame: Frame) -> Features:
         """Keypoints, descriptors and 3D points of ``frame``."""
@@ -100,23 +115,23 @@ class FeatureExtractor:
         z = depth_at_color_pixels(px, depth_m, self.camera, max_edge_ratio=cfg.max_edge_ratio)
         with np.errstate(invalid="ignore"):
             z[(z < cfg.min_depth_m) | (z > cfg.max_depth_m)] = np.nan
-        return np.stack([(px[:, 0] - c.cx) / c.fx * z, (px[:, 1] - c.cy) / c.fy * z, z], axis=1).astype(np.float32)
+        return pixels_to_points(px[:, 0], px[:, 1], z, c).astype(np.float32)
 
 
 class RelativePoseEstimator:
     """Relative pose between two frames' features by PnP-RANSAC on a's 3D points and b's pixels."""
 
-    def __init__(self, camera: CameraModel, config: OdometryConfig = OdometryConfig()):
+    def __init__(self, camera: CameraModel, config: OdometrySettings | None = None):
         self.camera = camera
-        self.config = config
+        self.config = config if config is not None else OdometrySettings()
         self.K = camera.color.matrix()
         self.matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
         E = camera.depth_to_color if (not camera.registered and camera.depth_to_color is not None) else np.eye(4)
         self.E, self.E_inv = E, inverse(E)
 
-    def estimate(self, a: Features, b: Features, config: OdometryConfig | None = None) -> Relative:
-        """``T_a_b`` in the body frame, or raise Rejected(reason)."""
-        cfg = config or self.config
+    def estimate(self, a: Features, b: Features, config: OdometrySettings | None = None) -> Relative:
+        """``T_a_b`` in the body frame, or raise Rejected(reason); ``config`` instead of the estimator's own."""
+        cfg = config if config is not None else self.config
         ia, ib = self._match(a, b, cfg)
         if len(ia) < cfg.min_matches:
             raise Rejected("too_few_matches", f"{len(ia)} < {cfg.min_matches}", len(ia))
@@ -149,7 +164,7 @@ class RelativePoseEstimator:
         sigma_deg = max(0.05, cfg.sigma_deg_coeff / np.sqrt(n_inl))
         return Relative(self.E_inv @ T_color @ self.E, len(ia), n_inl, residual, sigma_m, sigma_deg)
 
-    def _match(self, a: Features, b: Features, cfg: OdometryConfig) -> tuple[np.ndarray, np.ndarray]:
+    def _match(self, a: Features, b: Features, cfg: OdometrySettings) -> tuple[np.ndarray, np.ndarray]:
         valid = np.nonzero(np.isfinite(a.points[:, 2]))[0]
         if len(valid) < 2 or len(b) < 2:
             return np.zeros(0, int), np.zeros(0, int)
@@ -159,6 +174,6 @@ class RelativePoseEstimator:
             if len(pair) == 2 and pair[0].distance < cfg.ratio * pair[1].distance:
                 ia.append(valid[pair[0].queryIdx])
                 ib.append(pair[0].trainIdx)
-        ia, ib = np.asarray(ia, int), np.asarray(ib, int)
-        _, first = np.unique(ib, return_index=True)  # one match per b keypoint
-        return ia[first], ib[first]
+        qa, qb = np.asarray(ia, int), np.asarray(ib, int)
+        _, first = np.unique(qb, return_index=True)  # one match per b keypoint
+        return qa[first], qb[first]

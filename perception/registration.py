@@ -5,7 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from perception.frame import CameraModel, Intrinsics
+from perception.camera import Intrinsics, pixel_rays, pixels_to_points, points_to_pixels
+from perception.frame import CameraModel
 
 
 def backproject(depth_m: np.ndarray, K: Intrinsics, step: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -15,8 +16,7 @@ def backproject(depth_m: np.ndarray, K: Intrinsics, step: int = 1) -> tuple[np.n
     z = d[v, u]
     u = u * step
     v = v * step
-    pts = np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z], axis=1)
-    return pts, v, u
+    return pixels_to_points(u, v, z, K), v, u
 
 
 def project_zbuffer(points: np.ndarray, K: Intrinsics, width: int, height: int) -> np.ndarray:
@@ -24,8 +24,8 @@ def project_zbuffer(points: np.ndarray, K: Intrinsics, width: int, height: int) 
     z = points[:, 2].astype(np.float32)
     front = z > 1e-6
     pts, z = points[front], z[front]
-    u = np.rint(pts[:, 0] / pts[:, 2] * K.fx + K.cx).astype(np.int64)
-    v = np.rint(pts[:, 1] / pts[:, 2] * K.fy + K.cy).astype(np.int64)
+    u, v = points_to_pixels(pts, K)
+    u, v = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
     inside = (u >= 0) & (u < width) & (v >= 0) & (v < height)
     out = np.full(height * width, np.inf, dtype=np.float32)
     np.minimum.at(out, v[inside] * width + u[inside], z[inside])  # z-buffer: the nearest point of a pixel wins
@@ -54,8 +54,7 @@ def depth_in_color(depth_m: np.ndarray, camera: CameraModel, scale: int = 1) -> 
     if scale == 1:
         return reproject_depth(depth_m, camera.depth, camera.color, T, camera.width, camera.height)
     d, c = camera.depth, camera.color
-    small_src = Intrinsics(d.fx / scale, d.fy / scale, d.cx / scale, d.cy / scale)
-    small_dst = Intrinsics(c.fx / scale, c.fy / scale, c.cx / scale, c.cy / scale)
+    small_src, small_dst = d.subsampled(scale), c.subsampled(scale)
     w, h = -(-camera.width // scale), -(-camera.height // scale)
     small = reproject_depth(depth_m[::scale, ::scale], small_src, small_dst, T, w, h)
     return cv2.resize(small, (w * scale, h * scale), interpolation=cv2.INTER_NEAREST)[: camera.height, : camera.width]
@@ -113,17 +112,17 @@ def depth_at_color_pixels(
     c, d = camera.color, camera.depth
     E = camera.depth_to_color if camera.depth_to_color is not None else np.eye(4)
     E_inv = np.linalg.inv(E)
-    rays = np.stack([(pixels[:, 0] - c.cx) / c.fx, (pixels[:, 1] - c.cy) / c.fy, np.ones(len(pixels))], axis=1)
+    rays = np.stack([*pixel_rays(pixels[:, 0], pixels[:, 1], c), np.ones(len(pixels))], axis=1)
     z = np.full(len(pixels), float(np.nanmedian(depth_m)) if np.isfinite(depth_m).any() else 1.0)
     for _ in range(iterations):
         X_d = (rays * z[:, None]) @ E_inv[:3, :3].T + E_inv[:3, 3]
         with np.errstate(invalid="ignore", divide="ignore"):
-            u = np.round(X_d[:, 0] / X_d[:, 2] * d.fx + d.cx)
-            v = np.round(X_d[:, 1] / X_d[:, 2] * d.fy + d.cy)
+            u, v = points_to_pixels(X_d, d)
+            u, v = np.round(u), np.round(v)
         inside = np.isfinite(u) & np.isfinite(v) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
         z_d = np.full(len(pixels), np.nan)
         z_d[inside] = depth_m[v[inside].astype(int), u[inside].astype(int)]
-        X_dn = np.stack([(u - d.cx) / d.fx * z_d, (v - d.cy) / d.fy * z_d, z_d], axis=1)
+        X_dn = pixels_to_points(u, v, z_d, d)
         z_new = (X_dn @ E[:3, :3].T + E[:3, 3])[:, 2]
         z = np.where(np.isfinite(z_new), z_new, z)
         last = z_new

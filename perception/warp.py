@@ -1,6 +1,6 @@
 """Depth warping for large motion (Sec. 2.4.3): predict the newer keyframe's depth from the older one.
 
-Conventions: depth images are float metres with NaN where invalid; ``K`` is the 3x3 pinhole matrix;
+Conventions: depth images are float metres with NaN where invalid; ``K`` is the camera's ``Intrinsics``;
 ``T_new_old`` maps points from the older camera frame into the newer one (``inverse(T_wc_new) @ T_wc_old``).
 """
 
@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 
 from graph.geometry import motion_magnitude
-from perception.features import Box, backproject, box_pixels, dominant_depth_mask, stride_subsample, transform
+from perception.camera import Intrinsics, backproject_xy, points_to_pixels, project_uv
+from perception.features import Box, box_pixels, depth_points, dominant_depth_mask, stride_subsample, transform
 
 log = logging.getLogger(__name__)
 
@@ -25,16 +26,14 @@ def needs_warp(T_rel: np.ndarray, tau: float, phi: float) -> bool:
     return t > tau or angle > phi
 
 
-def project(points: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Pixel coordinates (N, 2) as (u, v) and depths (N,) of camera-frame points."""
-    z = points[:, 2]
+def project(points: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (N, 2) as (u, v) and depths (N,) of camera-frame points (``fx * x / z + cx``)."""
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = K[0, 0] * points[:, 0] / z + K[0, 2]
-        v = K[1, 1] * points[:, 1] / z + K[1, 2]
-    return np.stack([u, v], axis=1), z
+        u, v = points_to_pixels(points, K, scale_first=True)
+    return np.stack([u, v], axis=1), points[:, 2]
 
 
-def warp_depth(depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, splat: int = 1, step: int = 1) -> np.ndarray:
+def warp_depth(depth_m: np.ndarray, K: Intrinsics, T_new_old: np.ndarray, splat: int = 1, step: int = 1) -> np.ndarray:
     """The older depth seen from the newer camera: back-project, transform, re-project with a z-buffer (Sec. 2.4.3).
 
     Each point lands on its nearest pixel (``splat=2``: on the 2x2 pixels around it, which closes the
@@ -51,16 +50,14 @@ def warp_depth(depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, splat:
     else:
         rows, cols = np.nonzero(np.isfinite(depth_m) & (depth_m > 0))
     z0 = depth_m[rows, cols].astype(np.float32)
-    x0 = (cols.astype(np.float32) - np.float32(K[0, 2])) * (z0 / np.float32(K[0, 0]))
-    y0 = (rows.astype(np.float32) - np.float32(K[1, 2])) * (z0 / np.float32(K[1, 1]))
+    x0, y0 = backproject_xy(cols, rows, z0, K, depth_first=True, dtype=np.float32)
     R, t = T_new_old[:3, :3].astype(np.float32), T_new_old[:3, 3].astype(np.float32)
     x = R[0, 0] * x0 + R[0, 1] * y0 + R[0, 2] * z0 + t[0]
     y = R[1, 0] * x0 + R[1, 1] * y0 + R[1, 2] * z0 + t[1]
     z = R[2, 0] * x0 + R[2, 1] * y0 + R[2, 2] * z0 + t[2]
     front = z > MIN_Z_M
     x, y, z = x[front], y[front], z[front]
-    u = np.float32(K[0, 0]) * x / z + np.float32(K[0, 2])
-    v = np.float32(K[1, 1]) * y / z + np.float32(K[1, 2])
+    u, v = project_uv(x, y, z, K, scale_first=True, dtype=np.float32)
     # z-buffer on the image padded by one pixel on each side: a point whose splat reaches the image is kept
     # once, and positions in the padding are cropped. A 2x2 splat is the one-pixel z-buffer at the floor of
     # each point followed by a 2x2 minimum filter (each pixel takes the nearest of the points whose 2x2 splat
@@ -88,7 +85,7 @@ def warp_depth(depth_m: np.ndarray, K: np.ndarray, T_new_old: np.ndarray, splat:
 def moved_box_points(
     box: Box,
     depth_m: np.ndarray,
-    K: np.ndarray,
+    K: Intrinsics,
     T_new_old: np.ndarray,
     gap_m: float = 0.05,
     anchor_fraction: float = 0.5,
@@ -109,17 +106,17 @@ def moved_box_points(
     cr, cc = box_pixels(depth_m, box, anchor_fraction)
     anchor = float(np.median(depth_m[cr, cc] if len(cr) else depth_m[rows, cols]))
     keep = dominant_depth_mask(depth_m[rows, cols], anchor, gap_m)
-    return transform(T_new_old, backproject(depth_m, K, rows[keep], cols[keep]))
+    return transform(T_new_old, depth_points(depth_m, K, rows[keep], cols[keep]))
 
 
-def in_view(points: np.ndarray, K: np.ndarray, width: int, height: int) -> np.ndarray:
+def in_view(points: np.ndarray, K: Intrinsics, width: int, height: int) -> np.ndarray:
     """Mask of the camera-frame points in front of the camera that project inside a width x height image."""
     uv, z = project(points, K)
     with np.errstate(invalid="ignore"):
         return (z > MIN_Z_M) & (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
 
 
-def image_box(points: np.ndarray, K: np.ndarray, width: int, height: int) -> Box | None:
+def image_box(points: np.ndarray, K: Intrinsics, width: int, height: int) -> Box | None:
     """Bounding box of camera-frame points projected into a width x height image, clipped to it; None when
     nothing projects inside."""
     uv, z = project(points, K)
@@ -137,7 +134,7 @@ def image_box(points: np.ndarray, K: np.ndarray, width: int, height: int) -> Box
 def warp_box(
     box: Box,
     depth_m: np.ndarray,
-    K: np.ndarray,
+    K: Intrinsics,
     T_new_old: np.ndarray,
     gap_m: float = 0.05,
     anchor_fraction: float = 0.5,
@@ -148,7 +145,7 @@ def warp_box(
     return image_box(moved_box_points(box, depth_m, K, T_new_old, gap_m, anchor_fraction, max_points), K, w, h)
 
 
-def image_boxes(points: list[np.ndarray], K: np.ndarray, width: int, height: int) -> np.ndarray:
+def image_boxes(points: list[np.ndarray], K: Intrinsics, width: int, height: int) -> np.ndarray:
     """``image_box`` of each point set as rows (L, 4); rows of NaN for sets that leave the image."""
     out = np.full((len(points), 4), np.nan)
     for i, p in enumerate(points):

@@ -105,6 +105,8 @@ class PolicyProposer:
             for dc in range(-self.radius, self.radius + 1):
                 for kf, step, h, position, forward in self._visits.get((target[0] + dr, target[1] + dc), []):
                     if step < self.steps - self.exclude_last:
+                        # the angle between the viewing directions (not graph.geometry.rotation_angle of the
+                        # relative rotation, which also counts roll about the optical axis)
                         angle = float(np.arccos(np.clip(forward @ pose[:3, 2], -1.0, 1.0)))
                         found.append((h != heading, float(np.linalg.norm(position - pose[:3, 3])) + 0.5 * angle, kf))
         found.sort()

@@ -31,7 +31,7 @@ def main(n: int, mode: str, step: int) -> None:
     camera = ds.frame(0).camera
     c = camera.color
     settings = cv2.OdometrySettings()
-    settings.setCameraMatrix(np.array([[c.fx, 0, c.cx], [0, c.fy, c.cy], [0, 0, 1]], np.float32))
+    settings.setCameraMatrix(c.matrix().astype(np.float32))
     odometry = cv2.Odometry(TYPES[mode], settings, cv2.OdometryAlgoType_COMMON)
     color_from_depth = camera.depth_to_color if camera.depth_to_color is not None else np.eye(4)
 

@@ -20,13 +20,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from perception.camera import Intrinsics
 from perception.features import transform
 from perception.warp import project
 from sources import open_dataset
 from sources.tum import read_trajectory
 
 
-def draw_objects(rgb: np.ndarray, world_to_camera: np.ndarray, K: np.ndarray, objects: list[dict]) -> np.ndarray:
+def draw_objects(rgb: np.ndarray, world_to_camera: np.ndarray, K: Intrinsics, objects: list[dict]) -> np.ndarray:
     """BGR copy of ``rgb`` with each object centre in front of the camera and inside the image marked."""
     img = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
     h, w = img.shape[:2]
@@ -61,7 +62,7 @@ def main() -> None:
     trajectory = read_trajectory(args.run_dir / "trajectory.tum")
     times = data.timestamps
     frames = [int(f) for f in args.frames.split(",")] if args.frames else list(range(0, len(data), args.every))
-    K = data.camera.color.matrix()
+    K = data.camera.color
     tiles = []
     for index in frames:
         frame = data.frame(index)

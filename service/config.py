@@ -13,6 +13,9 @@ from pydantic import BaseModel, Field, ValidationError
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
 from loops.settings import LoopSettings
+from perception.detector import DetectorSettings
+from perception.frontend import KeyframeSettings
+from perception.odometry import OdometrySettings
 from service.protocol import Limits
 from slam.settings import ObjectSettings
 from sources.tum import CameraDefaults
@@ -39,54 +42,6 @@ class IngestSettings(Limits):
     """The bounded ingest queue between zenoh callbacks and the worker thread, and the decoder's bounds."""
 
     queue_size: int = Field(64, ge=1, description="frames held before the oldest is dropped")
-
-
-class KeyframeSettings(BaseModel):
-    """A frame becomes a keyframe when it moved enough since the last one, or too many frames passed."""
-
-    translation_m: float = Field(0.05, gt=0)
-    rotation_deg: float = Field(5.0, gt=0)
-    max_interval: int = Field(10, ge=1, description="frames between keyframes at most")
-    min_inliers: int = Field(120, ge=0, description="visual odometry: new keyframe when tracking weakens")
-    skip_edges: int = Field(
-        2,
-        ge=1,
-        description="visual odometry: factors from a new keyframe to this many earlier "
-        "keyframes (1 = the previous one only)",
-    )
-
-
-class OdometrySettings(BaseModel):
-    """RGB-D visual odometry, used for frames that carry no odometry."""
-
-    n_features: int = Field(1500, ge=100)
-    ratio: float = Field(0.8, gt=0, le=1, description="Lowe ratio test")
-    min_matches: int = Field(30, ge=6)
-    min_inliers: int = Field(25, ge=6)
-    ransac_px: float = Field(3.0, gt=0)
-    max_residual_px: float = Field(2.0, gt=0)
-    lost_sigma_scale: float = Field(100.0, ge=1, description="odometry sigma multiplier after tracking loss")
-    icp: bool = Field(True, description="refine keyframe-to-keyframe poses by depth point-to-plane ICP")
-    sigma_m_coeff: float = Field(0.08, gt=0, description="factor translation sigma = coeff / sqrt(inliers)")
-    sigma_deg_coeff: float = Field(3.0, gt=0, description="factor rotation sigma = coeff / sqrt(inliers)")
-
-
-class DetectorSettings(BaseModel):
-    """The ONNX object detector (SPEC 6.1), used on keyframes whose frames carry no detections."""
-
-    enabled: bool = Field(True, description="run on keyframes whose frames carry no detections")
-    kind: Literal["centernet", "nanodet", "yolo"] = "centernet"
-    model: Path | None = Field(None, description="ONNX file; empty = the shipped model of `kind` in models/")
-    threads: int = Field(2, ge=1)
-    score_threshold: float | None = Field(None, ge=0, le=1, description="empty = tuned default of `kind`")
-    class_thresholds: dict[str, float] | None = Field(None, description="per-class minimum scores")
-    nms_iou: float = Field(0.5, gt=0, le=1)
-    max_detections: int = Field(50, ge=1)
-    fit_aspect: bool = Field(
-        False,
-        description="centernet: a 512-wide input as high as the image's aspect needs "
-        "(512 x 384 for 4:3) instead of the letterboxed 512 x 512: faster, fewer detections",
-    )
 
 
 class GraphSettings(BaseModel):

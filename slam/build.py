@@ -13,9 +13,9 @@ from graph.pose_graph import NoiseSettings
 from graph.window import WindowedGraph, WindowSettings
 from loops.closer import LoopCloser
 from perception.frame import CameraModel
-from perception.frontend import ExternalOdometry, KeyframePolicy, VisualOdometry
+from perception.frontend import ExternalOdometry, VisualOdometry
 from perception.object_map import ObjectMapper
-from perception.odometry import FeatureExtractor, OdometryConfig, RelativePoseEstimator
+from perception.odometry import FeatureExtractor, RelativePoseEstimator
 from rl.proposer import PolicyProposer
 from slam.core import SlamCore, Tracking, TrackingFactory
 from slam.runner import Runner
@@ -47,8 +47,7 @@ def load_proposer(path: Path | None, radius: int, candidates: int) -> PolicyProp
 
 def tracking_factory(settings: SlamConfig, graph: WindowedGraph) -> TrackingFactory:
     """Builds the front end (external or visual odometry) and loop closure for the first frame's camera."""
-    policy = from_settings(KeyframePolicy, settings.keyframes, settings.odometry)
-    odometry = from_settings(OdometryConfig, settings.odometry)
+    policy, odometry = settings.keyframes, settings.odometry
 
     def build(camera: CameraModel, external: bool) -> Tracking:
         frontend = ExternalOdometry(policy) if external else VisualOdometry(camera, policy, odometry)
@@ -73,10 +72,12 @@ def build_core(settings: SlamConfig, runner: Runner | None = None, graph: Window
     loops = settings.loops
     proposer = load_proposer(loops.policy, loops.policy_radius, loops.policy_candidates) if loops.uses_policy else None
 
-    def detector():  # built at the first keyframe that needs it (onnxruntime session)
-        from perception.detector import Detector, DetectorConfig
+    detector_settings = settings.detector
 
-        return Detector(from_settings(DetectorConfig, settings.detector))
+    def detector():  # built at the first keyframe that needs it (onnxruntime session)
+        from perception.detector import Detector
+
+        return Detector(detector_settings)
 
     return SlamCore(
         settings,

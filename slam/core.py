@@ -94,7 +94,7 @@ class SlamCore:
         self.proposer = proposer
         self.runner: Runner = runner or InlineRunner()
         self.tracking_factory = tracking
-        self._make_detector = detector
+        self.detector_factory = detector
         self._detector: Detector | None = None
         self.tracking: Tracking | None = None
         self.records: list[FrameRecord] = []
@@ -229,9 +229,9 @@ class SlamCore:
 
     def _get_detector(self) -> Detector:
         if self._detector is None:
-            if self._make_detector is None:
+            if self.detector_factory is None:
                 raise ValueError("keyframes without detections need a detector (detector.enabled)")
-            self._detector = self._make_detector()
+            self._detector = self.detector_factory()
         return self._detector
 
     def _apply_mapping(self) -> None:

@@ -6,12 +6,17 @@ Each component's section is defined beside the component (``loops.settings.LoopS
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from pydantic import Field
 
 from graph.object_landmarks import LandmarkSettings
 from loops.settings import LoopSettings
+from perception.frontend import KeyframeSettings
+from perception.odometry import OdometrySettings
+
+if TYPE_CHECKING:  # the detector module imports onnxruntime
+    from perception.detector import DetectorSettings
 
 
 class ObjectSettings(LandmarkSettings):
@@ -32,16 +37,16 @@ class SlamConfig(Protocol):
     """The sections of the configuration that shape the map (``service.config.Settings`` has them)."""
 
     @property
-    def keyframes(self) -> Any: ...
+    def keyframes(self) -> KeyframeSettings: ...
 
     @property
-    def odometry(self) -> Any: ...
+    def odometry(self) -> OdometrySettings: ...
 
     @property
     def loops(self) -> LoopSettings: ...
 
     @property
-    def detector(self) -> Any: ...
+    def detector(self) -> DetectorSettings: ...
 
     @property
     def objects(self) -> ObjectSettings: ...

@@ -60,7 +60,7 @@ def map_objects(
     t0 = time.perf_counter()
     camera = frame.camera
     depth = depth_in_color(frame.depth_m(), camera, scale=2)
-    result.reclustered = mapper.add_keyframe(kf, found, depth, camera.color.matrix(), body @ color_from_body)
+    result.reclustered = mapper.add_keyframe(kf, found, depth, camera.color, body @ color_from_body)
     to_body = np.linalg.inv(color_from_body)
     result.observations = [
         (t, to_body[:3, :3] @ p + to_body[:3, 3], extent) for t, p, extent in mapper.last_observations

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from perception.camera import Intrinsics, pixel_rays, points_to_pixels, ray_matrix
 from sources.base import ObjectTruth
 
 TEXELS_PER_M = 100.0
@@ -145,11 +146,11 @@ class Render:
 class Renderer:
     """Z-buffered ray caster of textured rectangles for one pinhole camera."""
 
-    def __init__(self, surfaces: list[Surface], K: np.ndarray, width: int, height: int) -> None:
+    def __init__(self, surfaces: list[Surface], K: Intrinsics, width: int, height: int) -> None:
         """Renderer of ``surfaces`` for intrinsics ``K`` and image size."""
         self.surfaces, self.K, self.width, self.height = surfaces, K, width, height
-        self.a = ((np.arange(width) - K[0, 2]) / K[0, 0]).astype(np.float32)
-        self.b = ((np.arange(height) - K[1, 2]) / K[1, 1]).astype(np.float32)
+        a, b = pixel_rays(np.arange(width), np.arange(height), K)
+        self.a, self.b = a.astype(np.float32), b.astype(np.float32)
         self.instance = np.array([s.instance for s in surfaces] + [0], dtype=np.uint16)
 
     def render(self, pose: np.ndarray) -> Render:
@@ -188,7 +189,7 @@ class Renderer:
 
     def _bounds(self, cam: np.ndarray) -> tuple[int, int, int, int] | None:
         """Pixel rectangle (y0, y1, x0, x1) bounding camera-frame points in front of the camera."""
-        uv = cam[:, :2] / cam[:, 2:] * np.diag(self.K)[:2] + self.K[:2, 2]
+        uv = np.stack(points_to_pixels(cam, self.K), axis=1)
         lo = np.clip(np.floor(uv.min(0)).astype(np.int64) - 1, 0, (self.width, self.height))
         hi = np.clip(np.ceil(uv.max(0)).astype(np.int64) + 2, 0, (self.width, self.height))
         return (int(lo[1]), int(hi[1]), int(lo[0]), int(hi[0])) if hi[0] > lo[0] and hi[1] > lo[1] else None
@@ -220,8 +221,7 @@ class Renderer:
         mask = sid[y0:y1, x0:x1] == k
         if not mask.any():
             return False
-        fx, fy, cx, cy = self.K[0, 0], self.K[1, 1], self.K[0, 2], self.K[1, 2]
-        to_ab = np.array([[1.0 / fx, 0.0, (x0 - cx) / fx], [0.0, 1.0 / fy, (y0 - cy) / fy], [0.0, 0.0, 1.0]])
+        to_ab = ray_matrix(self.K, x0, y0)
         texel = np.array([[TEXELS_PER_M, 0.0, -0.5], [0.0, TEXELS_PER_M, -0.5], [0.0, 0.0, 1.0]])
         M = texel @ coeffs[[1, 2, 0]] @ to_ab
         flags, border = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, cv2.BORDER_REPLICATE

@@ -106,8 +106,7 @@ class SyntheticDataset(Dataset):
         self._labels = sorted({o.label for o in self._objects})
         self.min_pixels = max(20, int(round(400 * width * height / (640 * 480))))
         self.min_side = 0.04 * min(width, height)
-        K = self.camera.color.matrix()
-        self._renderer = Renderer(_surfaces(self.seed, self._objects), K, width, height)
+        self._renderer = Renderer(_surfaces(self.seed, self._objects), self.camera.color, width, height)
         n_pix = width * height
         self._gauss = np.random.default_rng([self.seed, 41]).standard_normal(3 * n_pix, dtype=np.float32)
         self._cache: dict[int, Render] = {}

@@ -11,13 +11,14 @@ import numpy as np
 import onnxruntime
 import pytest
 from matplotlib import cbook
+from pydantic import ValidationError
 from rich.console import Console
 from skimage import data
 
 from bench.detector import run_detector_bench
 from perception.centernet_input import ReshapeError, reshaped_centernet
 from perception.coco import COCO_CLASSES
-from perception.detector import Detector, DetectorConfig, default_model_path
+from perception.detector import Detector, DetectorSettings, default_model_path
 from perception.detector_decoders import (
     InputTransform,
     decode_centernet,
@@ -201,7 +202,7 @@ class FakeYoloSession:
 
 def test_yolo_pipeline_reads_names_letterboxes_with_grey_and_maps_boxes_back(monkeypatch):
     monkeypatch.setattr(onnxruntime, "InferenceSession", FakeYoloSession)
-    detector = Detector(DetectorConfig(model=Path("fake.onnx"), kind="yolo"))
+    detector = Detector(DetectorSettings(model=Path("fake.onnx"), kind="yolo"))
     assert detector.input_size == 320 and detector.class_names == ("robot", "mug")
     dets = detector.detect(np.zeros((240, 320, 3), np.uint8))  # scale 1, 40 grey rows above and below
     fed = detector._session.fed
@@ -215,12 +216,12 @@ def test_yolo_pipeline_reads_names_letterboxes_with_grey_and_maps_boxes_back(mon
 
 @pytest.fixture(scope="module")
 def centernet() -> Detector:
-    return Detector(DetectorConfig(kind="centernet"))
+    return Detector(DetectorSettings(kind="centernet"))
 
 
 @pytest.fixture(scope="module")
 def nanodet() -> Detector:
-    return Detector(DetectorConfig(kind="nanodet"))
+    return Detector(DetectorSettings(kind="nanodet"))
 
 
 def assert_top(dets: list[Detection], label: str, truth: tuple[float, ...], min_score: float = 0.4) -> None:
@@ -278,7 +279,7 @@ def test_letterbox_into_a_wide_canvas_centres_and_inverts():
 
 def test_centernet_on_a_4_3_image_runs_512_x_384_and_finds_what_the_square_input_finds(centernet):
     image = data.astronaut()[64:448]  # 512 x 384
-    fit = Detector(DetectorConfig(kind="centernet", fit_aspect=True))
+    fit = Detector(DetectorSettings(kind="centernet", fit_aspect=True))
     assert fit._preprocess(image)[0].shape == (1, 384, 512, 3)
     assert centernet._preprocess(image)[0].shape == (1, 512, 512, 3)
     fitted, full = fit.detect(image), centernet.detect(image)
@@ -301,9 +302,9 @@ def test_nanodet_finds_the_cat_and_the_astronaut(nanodet):
 
 def test_allow_list_and_class_thresholds_filter_labels():
     image = data.coffee()
-    only_cups = Detector(DetectorConfig(classes=("cup",), score_threshold=0.1)).detect(image)
+    only_cups = Detector(DetectorSettings(classes=("cup",), score_threshold=0.1)).detect(image)
     assert only_cups and {d.label for d in only_cups} == {"cup"}
-    strict = Detector(DetectorConfig(score_threshold=0.1, class_thresholds={"cup": 0.99})).detect(image)
+    strict = Detector(DetectorSettings(score_threshold=0.1, class_thresholds={"cup": 0.99})).detect(image)
     assert strict and "cup" not in {d.label for d in strict}
 
 
@@ -325,10 +326,10 @@ def test_shipped_models_are_present():
 
 
 def test_default_thresholds_depend_on_the_model_and_an_explicit_dict_replaces_them():
-    floor, per_class = DetectorConfig().thresholds()
+    floor, per_class = DetectorSettings().thresholds()
     assert floor == 0.3 and per_class["tv"] > floor > per_class["chair"]
-    assert DetectorConfig(kind="nanodet").thresholds()[0] == 0.35
-    assert DetectorConfig(kind="yolo", score_threshold=0.5, class_thresholds={}).thresholds() == (0.5, {})
+    assert DetectorSettings(kind="nanodet").thresholds()[0] == 0.35
+    assert DetectorSettings(kind="yolo", score_threshold=0.5, class_thresholds={}).thresholds() == (0.5, {})
 
 
 def test_bench_counts_classes_and_writes_a_table_and_contact_sheets(tmp_path, monkeypatch):
@@ -345,7 +346,9 @@ def test_bench_counts_classes_and_writes_a_table_and_contact_sheets(tmp_path, mo
 
 
 def test_detector_rejects_unknown_kinds_and_non_rgb_images(centernet):
+    with pytest.raises(ValidationError, match="centernet"):
+        DetectorSettings(kind="ssd")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="unknown detector kind"):
-        Detector(DetectorConfig(kind="ssd"))  # type: ignore[arg-type]
+        Detector(DetectorSettings.model_construct(kind="ssd"))
     with pytest.raises(ValueError, match="HxWx3"):
         centernet.detect(np.zeros((48, 64), np.uint8))

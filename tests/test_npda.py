@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.stats import mannwhitneyu, norm
 
+from perception.camera import Intrinsics
 from perception.frame import Detection
 from perception.npda import (
     NPDAConfig,
@@ -146,11 +147,11 @@ def test_tracks_follow_association_chains_and_keep_ids() -> None:
     assert not tracker.associated(third[1])
 
 
-def _side_by_side_views(seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _side_by_side_views(seed: int = 0) -> tuple[Intrinsics, np.ndarray, np.ndarray, np.ndarray]:
     """One 2 m deep object seen from two cameras 1.2 m apart along x: the previous camera sees the part at
     x in [1.0, 1.8] m (current camera frame), which lies right of the current image; the current one sees the
     part at x in [0.3, 0.9] m. Returns K, T_cur_prev, previous depth, current depth."""
-    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
+    K = Intrinsics(500.0, 500.0, 320.0, 240.0)
     rng = np.random.default_rng(seed)
     prev, cur = np.full((480, 640), np.nan), np.full((480, 640), np.nan)
     prev[200:300, 270:470] = 2.0 + 0.005 * rng.standard_normal((100, 200))  # x_prev in [-0.2, 0.6]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from graph.geometry import motion_magnitude, relative
-from perception.frontend import KeyframePolicy, VisualOdometry
+from perception.frontend import KeyframeSettings, VisualOdometry
 from perception.icp import icp_refine
 from perception.odometry import FeatureExtractor, RelativePoseEstimator
 from perception.registration import depth_at_color_pixels, depth_in_color
@@ -46,7 +46,7 @@ def test_icp_refines_a_perturbed_pose_on_exact_depth(room):
 
 
 def test_visual_odometry_tracks_a_synthetic_segment_within_centimetres(room):
-    vo = VisualOdometry(room.camera, KeyframePolicy())
+    vo = VisualOdometry(room.camera, KeyframeSettings())
     gt = room.ground_truth.poses
     poses = [vo.track(room.frame(i)).pose for i in range(0, 60)]
     drift, _ = motion_magnitude(relative(relative(gt[0], gt[59]), poses[59]))
@@ -54,7 +54,7 @@ def test_visual_odometry_tracks_a_synthetic_segment_within_centimetres(room):
 
 
 def test_textureless_frames_lose_tracking_without_raising(room):
-    vo = VisualOdometry(room.camera, KeyframePolicy())
+    vo = VisualOdometry(room.camera, KeyframeSettings())
     vo.track(room.frame(0))
     blank = room.frame(1)
     blank.rgb[:] = 128
@@ -84,7 +84,7 @@ def test_visual_odometry_on_a_real_7scenes_segment_has_small_ate():
     from evaluation.trajectory_metrics import trajectory_error
 
     ds = open_dataset(str(REDKITCHEN))
-    vo = VisualOdometry(ds.camera, KeyframePolicy())
+    vo = VisualOdometry(ds.camera, KeyframeSettings())
     n = 120
     poses = np.stack([vo.track(ds.frame(i)).pose for i in range(n)])
     err = trajectory_error(poses, ds.ground_truth.poses[:n])

@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from graph.geometry import inverse
+from perception.camera import Intrinsics
 from perception.features import (
     FeatureConfig,
     backproject_detection,
@@ -21,7 +22,7 @@ from perception.features import (
 from perception.warp import needs_warp, warp_box, warp_depth
 from sources import open_dataset
 
-K = np.array([[100.0, 0.0, 39.5], [0.0, 100.0, 29.5], [0.0, 0.0, 1.0]])
+K = Intrinsics(100.0, 100.0, 39.5, 29.5)
 
 
 def _pose(t: tuple[float, float, float], rotvec: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
@@ -54,7 +55,7 @@ def test_z_buffer_keeps_the_nearest_surface() -> None:
 
 def test_warping_exact_synthetic_depth_with_the_true_pose_agrees_with_the_later_frame() -> None:
     data = open_dataset("synthetic:room?seed=3&frames=300&width=320&height=240&depth_noise=0")
-    K_s = data.camera.color.matrix()
+    K_s = data.camera.color
     poses = data.ground_truth.poses
     i, j = 40, 46
     older, newer = data.frame(i).depth_m(), data.frame(j).depth_m()
@@ -139,7 +140,7 @@ def test_amodal_depth_is_bounded_by_the_wall_behind_a_flat_object() -> None:
 
 def _pitched_plane_depth(z0: float, slope: float, shape: tuple[int, int] = (60, 80)) -> np.ndarray:
     """Depth of the plane z = z0 + slope * y (camera frame: a wall seen by a camera pitched down), ray by ray."""
-    v = (np.arange(shape[0]) - K[1, 2]) / K[1, 1]
+    v = (np.arange(shape[0]) - K.cy) / K.fy
     return np.tile((z0 / (1.0 - slope * v)).astype(np.float32)[:, None], (1, shape[1]))
 
 
@@ -166,7 +167,7 @@ def test_the_floor_an_object_stands_on_is_dropped_from_its_pixels() -> None:
     object's vertical extent is its own; a wall (a vertical plane) around a screen is not taken for a support."""
     depth = np.full((60, 80), 4.0, np.float32)  # a far wall above the floor
     height = 0.21  # the floor below the camera: depth f * h / (row - cy) = 2.0 m at row 40, the cube's foot
-    depth[40:] = (K[1, 1] * height / (np.arange(40, 60) - K[1, 2]))[:, None]
+    depth[40:] = (K.fy * height / (np.arange(40, 60) - K.cy))[:, None]
     depth[20:40, 30:50] = 2.0  # the cube's face
     box = (28.0, 18.0, 52.0, 46.0)
     config = FeatureConfig(gap_m=0.25)  # coarse pixels: the floor's depth steps up to 0.2 m
