@@ -47,7 +47,7 @@ class Keyframes:
             raise ValueError("the graph already has a first keyframe")
         n = self.noise
         self._update(
-            [FactorRecord(0, -1, np.array(pose, float), n.prior_sigma_m, n.prior_sigma_deg)], [np.array(pose, float)]
+            [FactorRecord(0, None, np.array(pose, float), n.prior_sigma_m, n.prior_sigma_deg)], [np.array(pose, float)]
         )
         return 0
 

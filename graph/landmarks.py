@@ -14,7 +14,7 @@ import numpy as np
 from gtsam.symbol_shorthand import L
 
 from graph.errors import SolverError
-from graph.factors import LANDMARK, FactorRecord
+from graph.factors import FactorKind, FactorRecord
 
 log = logging.getLogger(__name__)
 
@@ -31,7 +31,9 @@ class Landmarks:
             if j not in self._landmarks:
                 self._pending.setdefault(j, [])
             return j in self._landmarks
-        prior = FactorRecord(j, -1, np.array(position, float).reshape(3), float(sigma_m), 0.0, kind=LANDMARK)
+        prior = FactorRecord(
+            j, None, np.array(position, float).reshape(3), float(sigma_m), 0.0, kind=FactorKind.LANDMARK
+        )
         if j in self._landmarks:
             self._update([prior])
         else:
@@ -86,7 +88,7 @@ class Landmarks:
             p = np.array(p_cam, float).reshape(3)
             if not np.all(np.isfinite(p)) or np.linalg.norm(p) < 1e-3:
                 raise ValueError(f"unusable landmark measurement {p}")
-            records.append(FactorRecord(k, j, p, float(sigma), 0.0, huber_k, LANDMARK, range_sigma_m=along))
+            records.append(FactorRecord(k, j, p, float(sigma), 0.0, huber_k, FactorKind.LANDMARK, range_sigma_m=along))
         factors, landmarks, waiting, first = [], [], {}, 0
         for r in records:
             if r.b in self._landmarks:
@@ -139,7 +141,7 @@ class Landmarks:
         return {
             (f.b, f.a, f.measurement.tobytes()): i
             for i, f in enumerate(self.factors)
-            if f.kind == LANDMARK and f.b in landmarks and i not in self._removed
+            if f.kind == FactorKind.LANDMARK and f.b in landmarks and i not in self._removed
         }
 
     @property
@@ -160,10 +162,12 @@ class Landmarks:
 
     def _drop_unconstrained(self, removed: list[int]) -> None:
         """Landmarks left without factors: iSAM2 removed their variables, so they wait to be observable again."""
-        touched = {f.a if f.b < 0 else f.b for f in (self.factors[i] for i in removed) if f.kind == LANDMARK}
+        touched = {
+            f.a if f.b is None else f.b for f in (self.factors[i] for i in removed) if f.kind == FactorKind.LANDMARK
+        }
         for j in touched & self._landmarks.keys():
             if not any(
-                f.kind == LANDMARK and (f.a if f.b < 0 else f.b) == j and i not in self._removed
+                f.kind == FactorKind.LANDMARK and (f.a if f.b is None else f.b) == j and i not in self._removed
                 for i, f in enumerate(self.factors)
             ):
                 del self._landmarks[j]

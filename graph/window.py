@@ -49,7 +49,7 @@ import gtsam
 import numpy as np
 
 from graph.errors import SolverError
-from graph.factors import LANDMARK, FactorRecord, from_columns, pose_noise, position_covariance
+from graph.factors import FactorKind, FactorRecord, from_columns, pose_noise, position_covariance
 from graph.keyframes import Keyframes
 from graph.landmarks import Landmarks
 from graph.pose_graph import NoiseSettings, PoseGraph
@@ -206,8 +206,8 @@ class WindowedGraph(Keyframes, Landmarks):
         """A factor in the window's keyframe ids; one on a fixed keyframe as a prior on its other end; None when
         nothing of it is in the window (both keyframes fixed, or a landmark not in ``landmarks``)."""
         s, fixed = self.start, self._fixed
-        if f.kind == LANDMARK:
-            if f.b < 0:
+        if f.kind == FactorKind.LANDMARK:
+            if f.b is None:
                 return f if f.a in landmarks else None
             if f.b not in landmarks:
                 return None
@@ -220,19 +220,21 @@ class WindowedGraph(Keyframes, Landmarks):
                 if f.range_sigma_m is None
                 else R @ position_covariance(f.measurement, f.sigma_m, f.range_sigma_m) @ R.T
             )
-            return FactorRecord(f.b, -1, R @ f.measurement + T[:3, 3], f.sigma_m, 0.0, f.huber_k, LANDMARK, covariance)
-        if f.b < 0:
+            return FactorRecord(
+                f.b, None, R @ f.measurement + T[:3, 3], f.sigma_m, 0.0, f.huber_k, FactorKind.LANDMARK, covariance
+            )
+        if f.b is None:
             return replace(f, a=f.a - s) if f.a >= s else None
         if f.a >= s and f.b >= s:
             return replace(f, a=f.a - s, b=f.b - s)
         if f.b >= s:
-            return replace(f, a=f.b - s, b=-1, measurement=fixed[f.a] @ f.measurement)
+            return replace(f, a=f.b - s, b=None, measurement=fixed[f.a] @ f.measurement)
         if f.a >= s:  # the prior's error is -Ad(T_ab) times the between-factor's: its covariance transformed so
             adjoint = gtsam.Pose3(f.measurement).AdjointMap()
             covariance = f.covariance if f.covariance is not None else pose_noise(f.sigma_m, f.sigma_deg).covariance()
             return replace(
                 f,
-                b=-1,
+                b=None,
                 a=f.a - s,
                 measurement=fixed[f.b] @ np.linalg.inv(f.measurement),
                 covariance=adjoint @ covariance @ adjoint.T,
@@ -292,7 +294,11 @@ class WindowedGraph(Keyframes, Landmarks):
         self.start, self._fixed = start, estimate[:start].copy()
         window = range(start, self.num_keyframes)
         indices = sorted({i for k in window for i in self._by_keyframe.get(k, []) if i not in self._removed})
-        kept = {f.b for f in (self.factors[i] for i in indices) if f.kind == LANDMARK and f.b >= 0 and f.a >= start}
+        kept = {
+            f.b
+            for f in (self.factors[i] for i in indices)
+            if f.kind == FactorKind.LANDMARK and f.b is not None and f.a >= start
+        }
         kept &= self._landmarks.keys()
         indices = sorted(
             set(indices) | {i for j in kept for i in self._by_landmark.get(j, []) if i not in self._removed}
@@ -431,9 +437,9 @@ class WindowedGraph(Keyframes, Landmarks):
 
 def _ends(f: FactorRecord) -> list[tuple[int | None, int | None]]:
     """(keyframe, landmark) of each variable a factor constrains (one of the two is None)."""
-    if f.kind == LANDMARK:
-        return [(None, f.a)] if f.b < 0 else [(f.a, None), (None, f.b)]
-    return [(f.a, None)] if f.b < 0 else [(f.a, None), (f.b, None)]
+    if f.kind == FactorKind.LANDMARK:
+        return [(None, f.a)] if f.b is None else [(f.a, None), (None, f.b)]
+    return [(f.a, None)] if f.b is None else [(f.a, None), (f.b, None)]
 
 
 class _GlobalSolver:

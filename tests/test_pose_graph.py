@@ -221,22 +221,22 @@ def test_a_wider_range_sigma_keeps_biased_object_measurements_from_shrinking_the
 
 
 def test_range_sigmas_and_rotated_landmark_priors_round_trip_through_the_factor_columns():
-    from graph.factors import LANDMARK, from_columns, position_covariance, to_columns
+    from graph.factors import FactorKind, from_columns, position_covariance, to_columns
 
     R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
     records = [
-        FactorRecord(2, 0, np.array([0.5, 0.1, 2.0]), 0.1, 0.0, 1.345, LANDMARK, range_sigma_m=0.3),
+        FactorRecord(2, 0, np.array([0.5, 0.1, 2.0]), 0.1, 0.0, 1.345, FactorKind.LANDMARK, range_sigma_m=0.3),
         FactorRecord(
             0,
-            -1,
+            None,
             np.array([1.0, 2.0, 0.5]),
             0.1,
             0.0,
             None,
-            LANDMARK,
+            FactorKind.LANDMARK,
             R @ position_covariance(np.array([0.5, 0.1, 2.0]), 0.1, 0.3) @ R.T,
         ),
-        FactorRecord(1, -1, np.array([1.0, 2.0, 0.5]), 0.1, 0.0, None, LANDMARK),
+        FactorRecord(1, None, np.array([1.0, 2.0, 0.5]), 0.1, 0.0, None, FactorKind.LANDMARK),
         FactorRecord(0, 1, np.eye(4), 0.02, 1.0),
     ]
     back = from_columns(to_columns(records))

@@ -12,7 +12,7 @@ from gtsam.symbol_shorthand import L, X
 
 from bench import isam2 as sim
 from evaluation.trajectory_metrics import trajectory_error
-from graph.factors import LANDMARK, FactorRecord
+from graph.factors import FactorKind, FactorRecord
 from graph.geometry import relative
 from graph.pose_graph import NoiseSettings, PoseGraph
 from graph.window import WindowedGraph, WindowSettings
@@ -268,7 +268,7 @@ def test_a_factor_to_a_fixed_keyframe_becomes_a_prior_with_the_same_error(window
     for a, b in ((fixed, free), (free, fixed)):
         record = FactorRecord(a, b, sim._noisy(np.eye(4), 0.5, 30.0, rng), 0.02, 1.0, huber_k=3.0)
         prior = g._localize(record, set())
-        assert prior.b == -1 and prior.a == free - g.start
+        assert prior.b is None and prior.a == free - g.start
         for _ in range(5):
             T_free = sim._noisy(np.eye(4), 1.0, 40.0, rng)
             values = gtsam.Values()
@@ -283,9 +283,9 @@ def test_a_landmark_measured_from_a_fixed_keyframe_becomes_a_world_prior_with_th
     """Wider along the viewing ray than across it: the world prior's covariance is the measurement's, rotated."""
     g = _rolled(windowed, np.random.default_rng(12), 30.0)
     fixed = g.start - 2
-    record = FactorRecord(fixed, 3, np.array([0.4, -0.2, 2.0]), 0.1, 0.0, None, LANDMARK, range_sigma_m=0.3)
+    record = FactorRecord(fixed, 3, np.array([0.4, -0.2, 2.0]), 0.1, 0.0, None, FactorKind.LANDMARK, range_sigma_m=0.3)
     prior = g._localize(record, {3})
-    assert prior.b == -1 and prior.a == 3 and prior.covariance.shape == (3, 3)
+    assert prior.b is None and prior.a == 3 and prior.covariance.shape == (3, 3)
     T = g.pose(fixed)
     landmark = T[:3, :3] @ record.measurement + T[:3, 3]
     errors = {}
