@@ -102,7 +102,7 @@ class ObjectLandmarks:
         try:
             m = [self.measurements[key] for key, _ in items]
             indices = self.graph.add_landmark_measurements(
-                [(k, j, x[:3]) for ((k, _), j), x in zip(items, m)],
+                [(k, j, x[:3]) for ((k, _), j), x in zip(items, m, strict=True)],
                 [x[3] for x in m],
                 self.config.landmark_huber_k,
                 [self.config.landmark_range_scale * x[3] for x in m],
@@ -111,7 +111,7 @@ class ObjectLandmarks:
             self.failures += 1
             log.error("object landmark measurements rejected by the solver (%d items): %s", len(items), exc)
             return 0
-        for (key, j), i in zip(items, indices):
+        for (key, j), i in zip(items, indices, strict=True):
             self.assigned[key] = (j, i)
         self._resolve(waiting & self.graph.landmarks_in_solver())
         return len(items)

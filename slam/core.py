@@ -18,9 +18,8 @@ import numpy as np
 from pydantic import BaseModel
 
 from graph.object_landmarks import LandmarkConfig, ObjectLandmarks
-from graph.pose_graph import NoiseSettings
 from graph.trajectory import Trajectory
-from graph.window import WindowedGraph, WindowSettings
+from graph.window import WindowedGraph
 from loops.closer import KeyframeEntry, LoopCloser, LoopConfig, Verified
 from perception.clustering import ObjectEllipsoid
 from perception.frame import CameraModel, Detection, Frame, FrameRejected, Reason
@@ -139,9 +138,7 @@ class Pipeline:
         self._pending: deque[dict[str, Future]] = deque()  # per keyframe, oldest first: its unapplied mapping jobs
         self._objects_view: list = []  # the objects as of the last applied mapping (read by object_list)
         self.mapping_errors = 0
-        self.graph = WindowedGraph(
-            from_settings(NoiseSettings, settings.graph), from_settings(WindowSettings, settings.graph)
-        )
+        self.graph = WindowedGraph(settings.graph)
         self.policy = from_settings(KeyframePolicy, settings.keyframes, settings.odometry)
         self.odometry_config = from_settings(OdometryConfig, settings.odometry)
         self.frontend: ExternalOdometry | VisualOdometry | None = None
@@ -523,7 +520,7 @@ class Pipeline:
     def from_state(cls, settings: Settings, state: dict[str, Any], background: bool = False) -> Pipeline:
         """A pipeline that continues from ``state`` (of ``state()``) exactly as the saved one would have."""
         p = cls(settings, background)
-        p.graph = WindowedGraph.from_state(state["graph"], from_settings(WindowSettings, settings.graph))
+        p.graph = WindowedGraph.from_state(state["graph"], settings.graph)
         if state["camera"] is not None:
             p._setup(state["camera"], state["external_odometry"])
             p.frontend.restore(state["frontend"])

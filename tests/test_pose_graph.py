@@ -82,7 +82,7 @@ def test_a_failed_update_leaves_the_graph_as_before_and_later_keyframes_still_go
     # (here: to a keyframe that does not exist); iSAM2 kept x12, so every later keyframe failed with
     # "key x12 already exists"
     with pytest.raises(SolverError):
-        g._update([FactorRecord(11, 30, np.eye(4), 0.02, 1.0)], [chain[-1]])
+        g.update([FactorRecord(11, 30, np.eye(4), 0.02, 1.0)], [chain[-1]])
     with pytest.raises(SolverError):
         g.add_between(3, 40, np.eye(4), 0.02, 1.0)
     assert (g.num_keyframes, g.num_factors, len(g.factors), g.factorization) == (12, 12, 12, "CHOLESKY")
