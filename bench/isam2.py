@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from bench.report import load_note, markdown_table, record, show_table
 from graph.geometry import relative
+from graph.interface import Graph
 from graph.pose_graph import PoseGraph
 from graph.settings import GraphSettings
 from graph.window import WindowedGraph
@@ -138,7 +139,7 @@ def simulate(
     """
     rng = np.random.default_rng(seed)
     world = Building.explore(n_poses, n_landmarks, rng, returns)
-    graph = WindowedGraph(settings) if windowed else PoseGraph(settings)
+    graph: Graph = WindowedGraph(settings) if windowed else PoseGraph(settings)
     graph.timings = []
     try:
         result = _build(graph, world, rng, loops_and_landmarks)
@@ -148,9 +149,7 @@ def simulate(
     return result
 
 
-def _build(
-    graph: PoseGraph | WindowedGraph, world: Building, rng: np.random.Generator, loops_and_landmarks: bool
-) -> dict:
+def _build(graph: Graph, world: Building, rng: np.random.Generator, loops_and_landmarks: bool) -> dict:
     seconds = graph.timings  # the same list through rolls (each new window appends to it)
     for j in range(len(world.landmarks)):
         graph.add_landmark(j)

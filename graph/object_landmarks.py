@@ -20,8 +20,7 @@ from typing import Any
 import numpy as np
 
 from graph.errors import SolverError
-from graph.pose_graph import PoseGraph
-from graph.window import WindowedGraph
+from graph.interface import Graph
 
 log = logging.getLogger(__name__)
 
@@ -50,7 +49,7 @@ class LandmarkConfig:
 class ObjectLandmarks:
     """Keeps the graph's object landmarks in step with the clustering."""
 
-    def __init__(self, graph: PoseGraph | WindowedGraph, config: LandmarkConfig = LandmarkConfig()):
+    def __init__(self, graph: Graph, config: LandmarkConfig = LandmarkConfig()):
         self.graph, self.config = graph, config
         self.measurements: dict[Key, np.ndarray] = {}  # (x, y, z, sigma)
         self.assigned: dict[Key, tuple[int, int | None]] = {}  # -> (landmark, factor index; None while waiting)

@@ -17,8 +17,7 @@ from typing import Any
 import numpy as np
 
 from graph.geometry import motion_magnitude, pose_to_tum, relative
-from graph.pose_graph import PoseGraph
-from graph.window import WindowedGraph
+from graph.interface import Graph
 from loops.place_recognition import PlaceIndex, global_descriptor
 from perception.odometry import Features, Rejected, Relative, RelativePoseEstimator
 
@@ -72,7 +71,7 @@ class Verified:
 class LoopCloser:
     """Candidates (appearance, and geometric proximity in the current estimate) + geometric verification."""
 
-    graph: PoseGraph | WindowedGraph
+    graph: Graph
     estimator: RelativePoseEstimator
     config: LoopConfig = LoopConfig()
     records: list[dict[str, Any]] = field(default_factory=list)

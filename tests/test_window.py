@@ -16,6 +16,7 @@ from bench import isam2 as sim
 from evaluation.trajectory_metrics import trajectory_error
 from graph.factors import FactorKind, FactorRecord
 from graph.geometry import relative
+from graph.interface import Graph
 from graph.pose_graph import PoseGraph
 from graph.settings import GraphSettings
 from graph.window import WindowedGraph
@@ -66,6 +67,11 @@ def windowed():
     yield make
     for g in graphs:
         g.close()
+
+
+def test_both_graphs_implement_the_graph_interface(windowed):
+    assert isinstance(PoseGraph(), Graph) and isinstance(windowed(400, 100), Graph)
+    assert not isinstance(object(), Graph)
 
 
 def test_below_the_window_it_is_the_whole_graph_update_for_update(windowed):
