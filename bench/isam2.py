@@ -26,8 +26,10 @@ from scipy.spatial.transform import Rotation
 
 from bench.report import load_note, markdown_table, record, show_table
 from graph.geometry import relative
-from graph.pose_graph import NoiseSettings, PoseGraph
-from graph.window import WindowedGraph, WindowSettings
+from graph.interface import Graph
+from graph.pose_graph import PoseGraph
+from graph.settings import GraphSettings
+from graph.window import WindowedGraph
 
 STEP_M = 0.1  # distance between keyframes
 ROOM_SPACING_M, ROOM_COLUMNS, LAP_RADIUS_M, WALL_RADIUS_M = 6.0, 7, 1.5, 2.8
@@ -123,33 +125,31 @@ def _noisy(T: np.ndarray, sigma_m: float, sigma_deg: float, rng: np.random.Gener
 def simulate(
     n_poses: int,
     n_landmarks: int,
-    noise: NoiseSettings,
-    window: WindowSettings | None,
+    settings: GraphSettings,
+    windowed: bool,
     seed: int = 0,
     returns: bool = True,
     loops_and_landmarks: bool = True,
 ) -> dict:
     """Build the graph keyframe by keyframe; per-update and per-keyframe timings and what went in.
 
-    ``window`` None: the whole graph in one iSAM2 (``PoseGraph``), else the service's ``WindowedGraph``, flushed
+    ``windowed`` False: the whole graph in one iSAM2 (``PoseGraph``), else the service's ``WindowedGraph``, flushed
     at the end (its whole-graph solve applied) before the error is measured. Without ``loops_and_landmarks``
     only the odometry chain is built (iSAM2's cost on the simplest graph).
     """
     rng = np.random.default_rng(seed)
     world = Building.explore(n_poses, n_landmarks, rng, returns)
-    graph = PoseGraph(noise) if window is None else WindowedGraph(noise, window)
+    graph: Graph = WindowedGraph(settings) if windowed else PoseGraph(settings)
     graph.timings = []
     try:
         result = _build(graph, world, rng, loops_and_landmarks)
     finally:
-        if window is not None:
+        if windowed:
             graph.close()
     return result
 
 
-def _build(
-    graph: PoseGraph | WindowedGraph, world: Building, rng: np.random.Generator, loops_and_landmarks: bool
-) -> dict:
+def _build(graph: Graph, world: Building, rng: np.random.Generator, loops_and_landmarks: bool) -> dict:
     seconds = graph.timings  # the same list through rolls (each new window appends to it)
     for j in range(len(world.landmarks)):
         graph.add_landmark(j)
@@ -180,8 +180,7 @@ def _build(
         cells[_cell(T)].append(k)
     update_s, total_s = np.array(seconds), time.perf_counter() - started
     t0 = time.perf_counter()
-    if isinstance(graph, WindowedGraph):
-        graph.flush()
+    graph.flush()  # the window: the whole graph's batch optimum (one iSAM2: nothing to wait for)
     error = np.linalg.norm(graph.poses()[:, :3, 3] - np.array(world.poses)[:, :3, 3], axis=1)
     latencies = np.array(getattr(graph, "solve_latencies", []))
     return {
@@ -260,18 +259,18 @@ class Variant:
     exploration's structure."""
 
     name: str
-    noise: NoiseSettings
-    window: WindowSettings | None
+    settings: GraphSettings
+    windowed: bool
     returns: bool = True
     loops_and_landmarks: bool = True
     repeats: int = 1  # runs of the same simulation; the table shows the one with the median growth ratio
 
     def params(self) -> str:
-        n, w = self.noise, self.window
+        n = self.settings
         where = (
-            "whole graph in one iSAM2"
-            if w is None
-            else f"window {w.window_keyframes} + {w.window_step} keyframes, whole graph in a child process"
+            f"window {n.window_keyframes} + {n.window_step} keyframes, whole graph in a child process"
+            if self.windowed
+            else "whole graph in one iSAM2"
         )
         return (
             f"{where}; relinearizeThreshold {n.relinearize_threshold:g}, relinearizeSkip {n.relinearize_skip}, "
@@ -282,15 +281,13 @@ class Variant:
 def variants() -> list[Variant]:
     """The service's configuration, the same without the window, no returns to old rooms, the bare chain."""
     from service.config import load_settings
-    from slam.core import from_settings
 
     settings = load_settings().graph
-    noise, window = from_settings(NoiseSettings, settings), from_settings(WindowSettings, settings)
     return [
-        Variant("**service configuration**", noise, window, repeats=5),
-        Variant("whole graph in one iSAM2 (before the window)", noise, None),
-        Variant("service, no returns to earlier rooms", noise, window, returns=False),
-        Variant("service, odometry chain only", noise, window, loops_and_landmarks=False),
+        Variant("**service configuration**", settings, True, repeats=5),
+        Variant("whole graph in one iSAM2 (before the window)", settings, False),
+        Variant("service, no returns to earlier rooms", settings, True, returns=False),
+        Variant("service, odometry chain only", settings, True, loops_and_landmarks=False),
     ]
 
 
@@ -302,7 +299,7 @@ def run_isam2_bench(console: Console, poses: int, landmarks: int, seed: int, wri
         runs = []
         for _ in range(v.repeats):
             load_before = os.getloadavg()[0]
-            r = simulate(poses, landmarks, v.noise, v.window, seed, v.returns, v.loops_and_landmarks)
+            r = simulate(poses, landmarks, v.settings, v.windowed, seed, v.returns, v.loops_and_landmarks)
             r.update(
                 variant=v.name,
                 params=v.params(),

@@ -1,7 +1,8 @@
 """Keyframes of the pose graph: the first one anchored, odometry, extra between-factors, loop closures (SPEC 6.8).
 
-A mixin over the graph's one update primitive, ``_update(factors, poses, landmarks, remove)`` with factors in
-keyframe ids, shared by the whole graph in one iSAM2 (``PoseGraph``) and the bounded window (``WindowedGraph``).
+A mixin over the graph's one update primitive, ``update(factors, poses, landmarks, remove)`` with factors in
+keyframe ids (``graph.books.GraphBase``), shared by the whole graph in one iSAM2 (``PoseGraph``) and the bounded
+window (``WindowedGraph``).
 """
 
 from __future__ import annotations
@@ -9,45 +10,24 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 
+from graph.books import GraphBase
 from graph.factors import FactorRecord
 
 
-class Keyframes:
-    """The keyframe half of a pose graph: it uses the graph's ``_update`` and ``noise``, and keeps the books that
-    ``state()`` saves (``factors``, ``_initial``, ``_landmark_initial``, ``_log``, ``_removed``, counters)."""
+class Keyframes(GraphBase):
+    """The keyframe half of a pose graph: it uses the graph's ``update``, ``pose`` and ``settings``."""
 
     def _newest(self) -> np.ndarray:
         """Current estimate of the newest keyframe."""
         return self.pose(self.num_keyframes - 1)
 
-    def _record(
-        self,
-        factors: list[FactorRecord],
-        poses: list[np.ndarray],
-        landmarks: list[tuple[int, np.ndarray]],
-        remove: list[int],
-    ) -> None:
-        """The books of a successful update: records (index = factor index), guesses, the log, counters."""
-        self.factors.extend(factors)
-        self._initial.extend(np.asarray(p, float) for p in poses)
-        for j, position in landmarks:
-            self._landmarks[j] = len(self._landmark_initial)
-            self._landmark_initial.append(np.asarray(position, float))
-        self._log.append((len(factors), len(poses), tuple(remove), tuple(j for j, _ in landmarks)))
-        if remove:
-            self._removed.update(remove)
-            self._drop_unconstrained(remove)
-        self.updates += 1
-        self.num_factors += len(factors) - len(remove)
-        self.num_keyframes += len(poses)
-
     def add_first(self, pose: np.ndarray) -> int:
         """Anchor keyframe 0 at ``pose`` (camera-to-world) with a tight prior."""
         if self.num_keyframes:
             raise ValueError("the graph already has a first keyframe")
-        n = self.noise
-        self._update(
-            [FactorRecord(0, -1, np.array(pose, float), n.prior_sigma_m, n.prior_sigma_deg)], [np.array(pose, float)]
+        n = self.settings
+        self.update(
+            [FactorRecord(0, None, np.array(pose, float), n.prior_sigma_m, n.prior_sigma_deg)], [np.array(pose, float)]
         )
         return 0
 
@@ -60,16 +40,15 @@ class Keyframes:
             raise ValueError("add_first must come before add_keyframe")
         k = self.num_keyframes
         if sigma_m is None:
-            sigma_m, sigma_deg = self.noise.odometry_sigma_m, self.noise.odometry_sigma_deg
+            sigma_m, sigma_deg = self.settings.odometry_sigma_m, self.settings.odometry_sigma_deg
         rel = np.array(relative, float)
         guess = gtsam.Pose3(self._newest()).compose(gtsam.Pose3(rel)).matrix()
-        self._update([FactorRecord(k - 1, k, rel, sigma_m, sigma_deg or self.noise.odometry_sigma_deg)], [guess])
+        self.update([FactorRecord(k - 1, k, rel, sigma_m, sigma_deg or self.settings.odometry_sigma_deg)], [guess])
         return k
 
     def add_between(self, k_a: int, k_b: int, T_a_b: np.ndarray, sigma_m: float, sigma_deg: float) -> int:
         """An extra Gaussian between-factor of existing keyframes (e.g. a skip edge of the odometry)."""
-        result = self._update([FactorRecord(k_a, k_b, np.array(T_a_b, float), sigma_m, sigma_deg)])
-        return int(result.getNewFactorsIndices()[0])
+        return self.update([FactorRecord(k_a, k_b, np.array(T_a_b, float), sigma_m, sigma_deg)]).factor_indices[0]
 
     def add_loop(
         self,
@@ -86,20 +65,21 @@ class Keyframes:
         Huber rather than Cauchy: after long drift a true loop starts tens of sigmas away, where Cauchy's
         weight vanishes and the loop would barely pull; outliers are kept out by the verifier instead.
         """
-        result = self._update([FactorRecord(k_a, k_b, np.array(T_a_b, float), sigma_m, sigma_deg, robust_k)])
-        index = int(result.getNewFactorsIndices()[0])
-        self._converge(iterations)
+        result = self.update([FactorRecord(k_a, k_b, np.array(T_a_b, float), sigma_m, sigma_deg, robust_k)])
+        index = result.factor_indices[0]
+        self.converge(iterations)
         return index
 
-    def _converge(self, iterations: int) -> None:
-        """Extra iSAM2 steps until the newest pose settles: a loop change moves many poses at once."""
+    def converge(self, iterations: int) -> None:
+        """Extra iSAM2 steps (up to ``iterations``) until the newest pose settles: a loop change moves many poses
+        at once."""
         for _ in range(iterations):
             before = self._newest()
-            self._update([])
+            self.update([])
             if np.abs(self._newest() - before).max() < 1e-5:
                 break
 
     def remove_factors(self, indices: list[int]) -> None:
         """Retract factors (e.g. a loop closure found inconsistent) through iSAM2's removeFactorIndices."""
-        self._update([], remove=indices)
-        self._converge(10)
+        self.update([], remove=indices)
+        self.converge(10)

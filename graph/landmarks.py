@@ -8,34 +8,36 @@ removed leaves the solver (iSAM2 drops unused variables) and waits to be observa
 
 from __future__ import annotations
 
-import logging
+from collections.abc import Sequence
 
 import numpy as np
-from gtsam.symbol_shorthand import L
 
+from graph.books import GraphBase
 from graph.errors import SolverError
-from graph.factors import LANDMARK, FactorRecord
-
-log = logging.getLogger(__name__)
+from graph.factors import FactorKind, FactorRecord
 
 
-class Landmarks:
-    """The landmark half of ``PoseGraph`` (a mixin: it uses the graph's ``_update``, ``pose`` and records)."""
+class Landmarks(GraphBase):
+    """The landmark half of a pose graph (a mixin: it uses the graph's ``update``, ``pose`` and ``books``); the
+    estimates (``landmark``, ``landmarks``) are the graph's own."""
 
     def add_landmark(self, j: int, position: np.ndarray | None = None, sigma_m: float = 1.0) -> bool:
         """Declare landmark ``j``; with a world ``position``, a prior (sigma ``sigma_m``) that makes it observable.
 
         Returns whether the landmark is in the solver now.
         """
+        books = self.books
         if position is None:
-            if j not in self._landmarks:
-                self._pending.setdefault(j, [])
-            return j in self._landmarks
-        prior = FactorRecord(j, -1, np.array(position, float).reshape(3), float(sigma_m), 0.0, kind=LANDMARK)
-        if j in self._landmarks:
-            self._update([prior])
+            if j not in books.landmarks:
+                books.pending.setdefault(j, [])
+            return j in books.landmarks
+        prior = FactorRecord(
+            j, None, np.array(position, float).reshape(3), float(sigma_m), 0.0, kind=FactorKind.LANDMARK
+        )
+        if j in books.landmarks:
+            self.update([prior])
         else:
-            self._pending.setdefault(j, [])
+            books.pending.setdefault(j, [])
             self._insert_landmark(j, prior)
         return True
 
@@ -61,55 +63,61 @@ class Landmarks:
 
     def add_landmark_measurements(
         self,
-        items: list[tuple[int, int, np.ndarray]],
-        sigma_m: float | list[float],
+        items: Sequence[tuple[int, int, np.ndarray]],
+        sigma_m: float | Sequence[float],
         huber_k: float | None = None,
-        range_sigma_m: float | list[float] | None = None,
+        range_sigma_m: float | Sequence[float] | None = None,
     ) -> list[int | None]:
         """Landmark measurements ``(k, j, p_cam)`` from any keyframes, in one iSAM2 update (see above).
 
         ``sigma_m``: one sigma for all, or one per measurement; ``range_sigma_m`` likewise, the sigma along the
         viewing ray (None: ``sigma_m``, isotropic).
         """
+        books = self.books
         sigmas = np.broadcast_to(np.asarray(sigma_m, float), (len(items),))
         ranges = (
             [None] * len(items)
             if range_sigma_m is None
             else np.broadcast_to(np.asarray(range_sigma_m, float), (len(items),)).tolist()
         )
-        records = []
-        for (k, j, p_cam), sigma, along in zip(items, sigmas, ranges):
+        records: list[tuple[int, FactorRecord]] = []  # (landmark, its measurement)
+        for (k, j, p_cam), sigma, along in zip(items, sigmas, ranges, strict=True):
             if not 0 <= k < self.num_keyframes:
                 raise ValueError(f"keyframe {k} is not in the graph")
-            if j not in self._landmarks and j not in self._pending:
+            if j not in books.landmarks and j not in books.pending:
                 raise ValueError(f"landmark {j} was not added")
             p = np.array(p_cam, float).reshape(3)
             if not np.all(np.isfinite(p)) or np.linalg.norm(p) < 1e-3:
                 raise ValueError(f"unusable landmark measurement {p}")
-            records.append(FactorRecord(k, j, p, float(sigma), 0.0, huber_k, LANDMARK, range_sigma_m=along))
-        factors, landmarks, waiting, first = [], [], {}, 0
-        for r in records:
-            if r.b in self._landmarks:
+            records.append(
+                (j, FactorRecord(k, j, p, float(sigma), 0.0, huber_k, FactorKind.LANDMARK, range_sigma_m=along))
+            )
+        factors: list[FactorRecord] = []
+        landmarks: list[tuple[int, np.ndarray]] = []
+        waiting: dict[int, list[FactorRecord]] = {}
+        first = 0
+        for j, r in records:
+            if j in books.landmarks:
                 factors.append(r)
             else:
-                self._pending[r.b].append(r)
-        for j in sorted({r.b for r in records if r.b not in self._landmarks}):
-            if len({r.a for r in self._pending[j]}) >= 2:
-                waiting[j] = self._pending.pop(j)
+                books.pending[j].append(r)
+        for j in sorted({j for j, _ in records if j not in books.landmarks}):
+            if len({r.a for r in books.pending[j]}) >= 2:
+                waiting[j] = books.pending.pop(j)
                 landmarks.append((j, self._guess(waiting[j])))
                 factors += waiting[j]
         if factors:
             try:
-                first = int(self._update(factors, landmarks=landmarks).getNewFactorsIndices()[0])
+                first = self.update(factors, landmarks=landmarks).factor_indices[0]
             except SolverError:
-                self._pending.update(waiting)
+                books.pending.update(waiting)
                 raise
         index = {id(f): first + i for i, f in enumerate(factors)}
-        return [index.get(id(r)) for r in records]
+        return [index.get(id(r)) for _, r in records]
 
     def withdraw_waiting(self, j: int, k: int, p_cam: np.ndarray) -> bool:
         """Take back a measurement of landmark ``j`` from keyframe ``k`` that still waits; True if found."""
-        waiting = self._pending.get(j, [])
+        waiting = self.books.pending.get(j, [])
         for i, r in enumerate(waiting):
             if r.a == k and np.array_equal(r.measurement, np.asarray(p_cam, float).reshape(3)):
                 del waiting[i]
@@ -119,53 +127,31 @@ class Landmarks:
     def _guess(self, observations: list[FactorRecord]) -> np.ndarray:
         """A landmark's initial position: the mean of its observations placed with the current pose estimates."""
         poses = [self.pose(r.a) for r in observations]
-        return np.mean([T[:3, :3] @ r.measurement + T[:3, 3] for T, r in zip(poses, observations)], axis=0)
+        return np.mean([T[:3, :3] @ r.measurement + T[:3, 3] for T, r in zip(poses, observations, strict=True)], axis=0)
 
     def _insert_landmark(self, j: int, prior: FactorRecord) -> None:
         """Put a landmark with a prior into iSAM2, with any observations held back for it."""
-        observations = self._pending.pop(j)
+        observations = self.books.pending.pop(j)
         try:
-            self._update([prior] + observations, landmarks=[(j, prior.measurement)])
+            self.update([prior, *observations], landmarks=[(j, prior.measurement)])
         except SolverError:
-            self._pending[j] = observations
+            self.books.pending[j] = observations
             raise
 
     def landmarks_in_solver(self) -> set[int]:
-        """Ids of the landmarks that are in iSAM2 now."""
-        return set(self._landmarks)
+        """Ids of the landmarks that are in the solver now."""
+        return set(self.books.landmarks)
 
     def landmark_factor_indices(self, landmarks: set[int]) -> dict[tuple[int, int, bytes], int]:
         """Factor index of each live measurement of these landmarks, by (landmark, keyframe, measurement bytes)."""
+        removed = self.books.removed
         return {
             (f.b, f.a, f.measurement.tobytes()): i
-            for i, f in enumerate(self.factors)
-            if f.kind == LANDMARK and f.b in landmarks and i not in self._removed
+            for i, f in enumerate(self.books.factors)
+            if f.kind == FactorKind.LANDMARK and f.b is not None and f.b in landmarks and i not in removed
         }
 
     @property
     def num_landmarks(self) -> int:
         """Landmarks in the solver (declared ones still waiting to be observable are not counted)."""
-        return len(self._landmarks)
-
-    def landmark(self, j: int) -> np.ndarray:
-        """Current estimate of landmark ``j`` (world position)."""
-        return np.asarray(self.isam.calculateEstimatePoint3(L(j)))
-
-    def landmarks(self) -> dict[int, np.ndarray]:
-        """All landmark estimates by id: from the cached full estimate when there is one, else one key at a time
-        (a full estimate costs O(poses) under the GIL; the service asks for the landmarks after every keyframe)."""
-        if self._estimate is not None:
-            return {j: np.asarray(self._estimate.atPoint3(L(j))) for j in self._landmarks}
-        return {j: np.asarray(self.isam.calculateEstimatePoint3(L(j))) for j in self._landmarks}
-
-    def _drop_unconstrained(self, removed: list[int]) -> None:
-        """Landmarks left without factors: iSAM2 removed their variables, so they wait to be observable again."""
-        touched = {f.a if f.b < 0 else f.b for f in (self.factors[i] for i in removed) if f.kind == LANDMARK}
-        for j in touched & self._landmarks.keys():
-            if not any(
-                f.kind == LANDMARK and (f.a if f.b < 0 else f.b) == j and i not in self._removed
-                for i, f in enumerate(self.factors)
-            ):
-                del self._landmarks[j]
-                self._pending[j] = []
-                log.info("landmark %d lost its last factor: out of the solver until observable again", j)
+        return len(self.books.landmarks)

@@ -20,8 +20,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from graph.errors import SolverError
-from graph.pose_graph import PoseGraph
-from graph.window import WindowedGraph
+from graph.interface import Graph
 
 log = logging.getLogger(__name__)
 
@@ -34,27 +33,33 @@ class LandmarkSettings(BaseModel):
     model_config = ConfigDict(frozen=True, extra="forbid")
 
     landmark_sigma_m: float = Field(
-        0.1, gt=0, description="sigma of an object centroid measurement (m): the visible surface's centroid moves "
-        "with the viewpoint"
+        0.1,
+        gt=0,
+        description="sigma of an object centroid measurement (m): the visible surface's centroid moves "
+        "with the viewpoint",
     )
     landmark_huber_k: float | None = Field(
-        1.345, gt=0, description="Huber kernel of object measurements; null = none (a wrong association must not "
-        "bend the trajectory)"
+        1.345,
+        gt=0,
+        description="Huber kernel of object measurements; null = none (a wrong association must not "
+        "bend the trajectory)",
     )
     landmark_min_support: int = Field(5, ge=1, description="feature vectors an object needs to become a landmark")
     landmark_extent_scale: float = Field(
         1.0, ge=0, description="a measurement's sigma is at least this times the largest std of the object's points"
     )
     landmark_range_scale: float = Field(
-        3.0, ge=1, description="sigma along the viewing ray = this times the sigma across it: the visible surface's "
-        "centroid lies short of the object's"
+        3.0,
+        ge=1,
+        description="sigma along the viewing ray = this times the sigma across it: the visible surface's "
+        "centroid lies short of the object's",
     )
 
 
 class ObjectLandmarks:
     """Keeps the graph's object landmarks in step with the clustering."""
 
-    def __init__(self, graph: PoseGraph | WindowedGraph, config: LandmarkSettings | None = None):
+    def __init__(self, graph: Graph, config: LandmarkSettings | None = None):
         self.graph, self.config = graph, config or LandmarkSettings()
         self.measurements: dict[Key, np.ndarray] = {}  # (x, y, z, sigma)
         self.assigned: dict[Key, tuple[int, int | None]] = {}  # -> (landmark, factor index; None while waiting)
@@ -106,7 +111,7 @@ class ObjectLandmarks:
         try:
             m = [self.measurements[key] for key, _ in items]
             indices = self.graph.add_landmark_measurements(
-                [(k, j, x[:3]) for ((k, _), j), x in zip(items, m)],
+                [(k, j, x[:3]) for ((k, _), j), x in zip(items, m, strict=True)],
                 [x[3] for x in m],
                 self.config.landmark_huber_k,
                 [self.config.landmark_range_scale * x[3] for x in m],
@@ -115,7 +120,7 @@ class ObjectLandmarks:
             self.failures += 1
             log.error("object landmark measurements rejected by the solver (%d items): %s", len(items), exc)
             return 0
-        for (key, j), i in zip(items, indices):
+        for (key, j), i in zip(items, indices, strict=True):
             self.assigned[key] = (j, i)
         self._resolve(waiting & self.graph.landmarks_in_solver())
         return len(items)

@@ -15,70 +15,45 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass
+from collections.abc import Sequence
 from typing import Any
 
 import gtsam
 import numpy as np
 from gtsam.symbol_shorthand import L, X
 
+from graph.books import Books, LogEntry, UpdateResult
 from graph.errors import SolverError
-from graph.factors import FactorRecord, from_columns, pose_noise, to_columns
+from graph.factors import FactorKind, FactorRecord, from_columns, pose_noise
 from graph.keyframes import Keyframes
 from graph.landmarks import Landmarks
+from graph.settings import GraphSettings, from_noise_state, noise_state
 
-__all__ = ["FactorRecord", "NoiseSettings", "PoseGraph", "SolverError", "pose_noise"]
+__all__ = ["FactorRecord", "PoseGraph", "SolverError", "pose_noise"]
 
 log = logging.getLogger(__name__)
 
-Update = tuple[int, int, tuple[int, ...], tuple[int, ...]]  # factors, poses, removed indices, landmark ids
-
-
-@dataclass(frozen=True)
-class NoiseSettings:
-    """Standard deviations of the pose prior and of odometry between-factors; iSAM2 parameters.
-
-    ``partial_relinearization_check``: look for variables to relinearize only in the cliques an update
-    touches, not in the whole tree (``objslam bench isam2``: p95 update time at 10,000 poses 4x lower).
-    ``relinearize_threshold`` 0.1 (gtsam's default): p95 update 4x lower than 0.01 at 10,000 poses, with the
-    same ATE on 7-Scenes (4.03 cm) and the synthetic scenes.
-    """
-
-    odometry_sigma_m: float = 0.02
-    odometry_sigma_deg: float = 1.0
-    prior_sigma_m: float = 1e-4
-    prior_sigma_deg: float = 0.01
-    relinearize_threshold: float = 0.1
-    relinearize_skip: int = 1
-    partial_relinearization_check: bool = True
-
 
 class PoseGraph(Keyframes, Landmarks):
-    """Keyframe poses ``X(i)`` (i = 0, 1, ...) and landmarks ``L(j)`` in an incremental iSAM2 graph."""
+    """Keyframe poses ``X(i)`` (i = 0, 1, ...) and landmarks ``L(j)`` in an incremental iSAM2 graph.
 
-    def __init__(self, noise: NoiseSettings = NoiseSettings()):
-        self.noise = noise
-        self.factorization = "CHOLESKY"  # QR after Cholesky found the system indeterminant (``_update``)
+    ``factorization``: iSAM2's, CHOLESKY until Cholesky found the system indeterminant (then QR, ``update``).
+    """
+
+    def __init__(self, settings: GraphSettings | None = None, factorization: str = "CHOLESKY"):
+        self.settings = GraphSettings() if settings is None else settings
+        self.factorization = factorization
         self.isam = self._new_isam()
-        self.factors: list[FactorRecord] = []  # index = iSAM2 factor index
-        self._initial: list[np.ndarray] = []  # keyframe pose guesses in insertion order
-        self._landmark_initial: list[np.ndarray] = []  # landmark position guesses in insertion order
-        self._log: list[Update] = []
-        self._landmarks: dict[int, int] = {}  # landmark id in iSAM2 -> insertion order
-        self._pending: dict[int, list[FactorRecord]] = {}  # declared, not yet observable -> its observations
-        self._removed: set[int] = set()  # factor indices removed from iSAM2
+        self.books = Books()
         self._estimate: gtsam.Values | None = None
         self._latest = np.eye(4)
-        self.num_keyframes = 0
-        self.num_factors = 0
-        self.updates = 0
         self.timings: list[float] | None = None  # a list: the seconds of each ISAM2.update call are appended
 
     def _new_isam(self) -> gtsam.ISAM2:
         params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.noise.relinearize_threshold)
-        params.relinearizeSkip = self.noise.relinearize_skip
-        params.enablePartialRelinearizationCheck = self.noise.partial_relinearization_check
+        params.setRelinearizeThreshold(self.settings.relinearize_threshold)
+        params.relinearizeSkip = self.settings.relinearize_skip
+        params.enablePartialRelinearizationCheck = self.settings.partial_relinearization_check
         params.setFactorization(self.factorization)
         return gtsam.ISAM2(params)
 
@@ -118,30 +93,48 @@ class PoseGraph(Keyframes, Landmarks):
         update exceeds ``relinearize_threshold``). The graph itself is left as it is. Should the batch problem
         fail (gtsam throws, e.g. an indeterminant system), iSAM2's estimate is returned, with a warning."""
         factors = gtsam.NonlinearFactorGraph()
-        for i, f in enumerate(self.factors):
-            if i not in self._removed:
+        for i, f in enumerate(self.books.factors):
+            if i not in self.books.removed:
                 factors.add(f.to_gtsam())
         try:
             values = gtsam.LevenbergMarquardtOptimizer(factors, self._current()).optimize()
         except RuntimeError as exc:
             log.warning("the batch optimisation failed, keeping iSAM2's estimate: %s", exc)
             return self.poses(), self.landmarks()
-        return self._keyframe_poses(values), {j: np.asarray(values.atPoint3(L(j))) for j in self._landmarks}
+        return self._keyframe_poses(values), {j: np.asarray(values.atPoint3(L(j))) for j in self.books.landmarks}
 
     def _current(self) -> gtsam.Values:
         if self._estimate is None:
             self._estimate = self.isam.calculateEstimate()
         return self._estimate
 
+    def landmark(self, j: int) -> np.ndarray:
+        """Current estimate of landmark ``j`` (world position)."""
+        return np.asarray(self.isam.calculateEstimatePoint3(L(j)))
+
+    def landmarks(self) -> dict[int, np.ndarray]:
+        """All landmark estimates by id: from the cached full estimate when there is one, else one key at a time
+        (a full estimate costs O(poses) under the GIL; the service asks for the landmarks after every keyframe)."""
+        if self._estimate is not None:
+            return {j: np.asarray(self._estimate.atPoint3(L(j))) for j in self.books.landmarks}
+        return {j: np.asarray(self.isam.calculateEstimatePoint3(L(j))) for j in self.books.landmarks}
+
+    def flush(self, timeout: float = 600.0) -> None:
+        """Nothing to wait for: every factor is in this one iSAM2 (its estimate stays iSAM2's; ``optimum`` gives
+        the batch optimum without changing the graph). For the ``Graph`` interface."""
+
+    def close(self) -> None:
+        """Nothing to stop (no child process). For the ``Graph`` interface."""
+
     # ------------------------------------------------------------ updates
 
-    def _update(
+    def update(
         self,
-        factors: list[FactorRecord],
-        poses: list[np.ndarray] = (),
-        landmarks: list[tuple[int, np.ndarray]] = (),
-        remove: list[int] | None = None,
-    ) -> gtsam.ISAM2Result:
+        factors: Sequence[FactorRecord],
+        poses: Sequence[np.ndarray] = (),
+        landmarks: Sequence[tuple[int, np.ndarray]] = (),
+        remove: Sequence[int] | None = None,
+    ) -> UpdateResult:
         """One iSAM2 update: new factors, guesses of the next keyframes and of new landmarks, factors to remove.
 
         When iSAM2 throws, the solver is rebuilt from the log (without this update) and SolverError raised. An
@@ -149,7 +142,7 @@ class PoseGraph(Keyframes, Landmarks):
         long chain) first switches the solver to QR for good: rebuilt, and the update retried.
         """
         try:
-            return self._apply(factors, poses, landmarks, remove or [])
+            return self._apply(factors, poses, landmarks, list(remove or []))
         except RuntimeError as exc:
             error = exc
         if self.factorization == "CHOLESKY" and "ndetermina" in str(error):
@@ -160,7 +153,7 @@ class PoseGraph(Keyframes, Landmarks):
             self.factorization = "QR"
             self._rebuild()
             try:
-                return self._apply(factors, poses, landmarks, remove or [])
+                return self._apply(factors, poses, landmarks, list(remove or []))
             except RuntimeError as exc:
                 error = exc
         log.error("iSAM2 update failed, rebuilding the solver without it: %s", error)
@@ -169,11 +162,11 @@ class PoseGraph(Keyframes, Landmarks):
 
     def _apply(
         self,
-        factors: list[FactorRecord],
-        poses: list[np.ndarray],
-        landmarks: list[tuple[int, np.ndarray]],
+        factors: Sequence[FactorRecord],
+        poses: Sequence[np.ndarray],
+        landmarks: Sequence[tuple[int, np.ndarray]],
         remove: list[int],
-    ) -> gtsam.ISAM2Result:
+    ) -> UpdateResult:
         """The iSAM2 update itself, and on success its bookkeeping (records, log, counters)."""
         graph = gtsam.NonlinearFactorGraph()
         for f in factors:
@@ -187,35 +180,47 @@ class PoseGraph(Keyframes, Landmarks):
         result = self.isam.update(graph, initial, list(remove)) if remove else self.isam.update(graph, initial)
         if self.timings is not None:
             self.timings.append(time.perf_counter() - t0)
-        self._record(factors, poses, landmarks, remove)
+        self.books.record(factors, poses, landmarks, remove)
+        if remove:
+            self._drop_unconstrained(remove)
         self._estimate = None
         if self.num_keyframes:
             self._latest = self.pose(self.num_keyframes - 1)
-        return result
+        return UpdateResult(tuple(int(i) for i in result.getNewFactorsIndices()))
+
+    def _drop_unconstrained(self, removed: list[int]) -> None:
+        """Landmarks left without factors: iSAM2 removed their variables, so they wait to be observable again."""
+        books = self.books
+        touched = {
+            f.a if f.b is None else f.b for f in (books.factors[i] for i in removed) if f.kind == FactorKind.LANDMARK
+        }
+        for j in touched & books.landmarks.keys():
+            if not any(
+                f.kind == FactorKind.LANDMARK and (f.a if f.b is None else f.b) == j and i not in books.removed
+                for i, f in enumerate(books.factors)
+            ):
+                books.lose_landmark(j)
 
     def _rebuild(self) -> None:
-        """A fresh iSAM2 with every logged update replayed: the graph as it was before a failed update."""
-        entries, factors = self._log, self.factors
-        initial, landmark_initial = self._initial, self._landmark_initial
-        self._reset()
-        self._replay(entries, factors, initial, landmark_initial)
-
-    def _reset(self) -> None:
+        """A fresh iSAM2 with every logged update replayed: the graph as it was before a failed update (the
+        observations waiting for their landmarks kept as they are)."""
+        old = self.books
         self.isam = self._new_isam()
-        self.factors, self._initial, self._landmark_initial, self._log = [], [], [], []
-        self._landmarks, self._removed, self._estimate, self._latest = {}, set(), None, np.eye(4)
-        self.num_keyframes = self.num_factors = self.updates = 0
+        self.books, self._estimate, self._latest = Books(pending=old.pending), None, np.eye(4)
+        self.replay(old.log, old.factors, old.initial, old.landmark_initial)
 
-    def _replay(
+    def replay(
         self,
-        entries: list[Update],
-        factors: list[FactorRecord],
-        initial: list[np.ndarray],
-        landmark_initial: list[np.ndarray],
+        entries: Sequence[LogEntry],
+        factors: Sequence[FactorRecord],
+        initial: Sequence[np.ndarray],
+        landmark_initial: Sequence[np.ndarray],
     ) -> None:
+        """Apply an update log (``books.log``) with its records and guesses, update by update, to this graph (a
+        new one: the log's factor indices and keyframe ids start at 0). RuntimeError if iSAM2 rejects one."""
         nf = nv = nl = 0
         for n_factors, n_poses, removed, landmark_ids in entries:
-            landmarks = list(zip(landmark_ids, landmark_initial[nl : nl + len(landmark_ids)]))
+            landmarks = list(zip(landmark_ids, landmark_initial[nl : nl + len(landmark_ids)], strict=False))
             self._apply(factors[nf : nf + n_factors], initial[nv : nv + n_poses], landmarks, list(removed))
             nf, nv, nl = nf + n_factors, nv + n_poses, nl + len(landmark_ids)
 
@@ -228,36 +233,26 @@ class PoseGraph(Keyframes, Landmarks):
         of keyframes and landmarks in insertion order, the update log, landmarks still waiting to be
         observable with their held-back observations, and the current estimate (a replay check).
         """
-        pending = [r for observations in self._pending.values() for r in observations]
         return {
-            "noise": asdict(self.noise),
+            "noise": noise_state(self.settings),
             "factorization": self.factorization,
-            "factors": to_columns(self.factors),
-            "initial": np.array(self._initial).reshape(-1, 4, 4),
-            "landmark_initial": np.array(self._landmark_initial, float).reshape(-1, 3),
-            "updates": list(self._log),
-            "pending_landmarks": np.array(list(self._pending), np.int64),
-            "pending": to_columns(pending),
+            **self.books.columns(),
             "estimate": self.poses(),
         }
 
     @classmethod
     def from_state(cls, state: dict[str, Any]) -> PoseGraph:
         """Replay the recorded updates into a fresh iSAM2: same factor indices, removals and estimate."""
-        # snapshots from before the partial relinearization check was a setting were made without it
-        graph = cls(NoiseSettings(**{"partial_relinearization_check": False, **state["noise"]}))
-        if state.get("factorization", "CHOLESKY") != graph.factorization:
-            graph.factorization = state["factorization"]
-            graph.isam = graph._new_isam()
+        graph = cls(from_noise_state(state["noise"]), state.get("factorization", "CHOLESKY"))
         entries, factors, initial = _without_failed(
             state["updates"], from_columns(state["factors"]), list(state["initial"])
         )
         try:
-            graph._replay(entries, factors, initial, list(state.get("landmark_initial", [])))
+            graph.replay(entries, factors, initial, list(state.get("landmark_initial", [])))
         except RuntimeError as exc:
             raise SolverError(f"replaying the saved graph failed: {exc}") from exc
         pending = from_columns(state["pending"]) if "pending" in state else []
-        graph._pending = {int(j): [r for r in pending if r.b == j] for j in state.get("pending_landmarks", [])}
+        graph.books.pending = {int(j): [r for r in pending if r.b == j] for j in state.get("pending_landmarks", [])}
         drift = float(np.abs(graph.poses() - state["estimate"]).max(initial=0.0))
         if drift > 1e-9:
             log.warning("replayed pose graph differs from the recorded estimate by %.3g", drift)
@@ -266,12 +261,12 @@ class PoseGraph(Keyframes, Landmarks):
 
 def _without_failed(
     entries: list, factors: list[FactorRecord], initial: list[np.ndarray]
-) -> tuple[list[Update], list[FactorRecord], list[np.ndarray]]:
+) -> tuple[list[LogEntry], list[FactorRecord], list[np.ndarray]]:
     """The update log in the current form. Logs from before landmarks are ``(factors, poses, removed, ok)``
     and kept failed updates, whose factors and guesses are dropped here (the solver no longer keeps them)."""
     if not entries or not isinstance(entries[0][3], (bool, np.bool_)):
         return [tuple(e) for e in entries], factors, initial
-    kept: list[Update] = []
+    kept: list[LogEntry] = []
     kept_factors: list[FactorRecord] = []
     kept_initial: list[np.ndarray] = []
     nf = nv = 0

@@ -14,8 +14,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from graph.geometry import motion_magnitude, relative
-from graph.pose_graph import PoseGraph
-from graph.window import WindowedGraph
+from graph.interface import Graph
 from loops.records import LoopRecord, Verified
 from loops.settings import LoopSettings
 
@@ -35,7 +34,7 @@ class AcceptedLoop:
 class LoopAcceptance:
     """The accepted loops of a graph, and the records of every candidate judged."""
 
-    graph: PoseGraph | WindowedGraph
+    graph: Graph
     settings: LoopSettings
     records: list[LoopRecord] = field(default_factory=list)
     accepted: dict[int, AcceptedLoop] = field(default_factory=dict)  # by factor index

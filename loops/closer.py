@@ -14,8 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from graph.pose_graph import PoseGraph
-from graph.window import WindowedGraph
+from graph.interface import Graph
 from loops.acceptance import AcceptedLoop, LoopAcceptance
 from loops.candidates import candidates
 from loops.place_recognition import PlaceIndex, global_descriptor
@@ -30,7 +29,7 @@ class LoopCloser:
 
     def __init__(
         self,
-        graph: PoseGraph | WindowedGraph,
+        graph: Graph,
         estimator: RelativePoseEstimator,
         settings: LoopSettings | None = None,
     ):
@@ -45,7 +44,7 @@ class LoopCloser:
         )
 
     @property
-    def graph(self) -> PoseGraph | WindowedGraph:
+    def graph(self) -> Graph:
         return self.acceptance.graph
 
     @property

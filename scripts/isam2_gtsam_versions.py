@@ -45,9 +45,9 @@ def service_graph(n: int) -> tuple[float, float, float]:
     """t(1000), t(n) (ms per keyframe) and their ratio for `objslam bench isam2`'s simulation with the whole
     graph in one iSAM2 (the service's graph before the bounded window)."""
     from bench.isam2 import growth, simulate, window_mean
-    from graph.pose_graph import NoiseSettings
+    from graph.settings import GraphSettings
 
-    r = simulate(n, 300, NoiseSettings(relinearize_threshold=0.1), window=None, seed=0, returns=True)
+    r = simulate(n, 300, GraphSettings(relinearize_threshold=0.1), windowed=False, seed=0, returns=True)
     ks = r["keyframe_s"]
     return window_mean(ks, 1000) * 1e3, window_mean(ks, n) * 1e3, growth(ks, n, 1000, n)
 

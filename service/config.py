@@ -12,6 +12,7 @@ import yaml
 from pydantic import BaseModel, Field, ValidationError
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
 
+from graph.settings import GraphSettings
 from loops.settings import LoopSettings
 from perception.detector import DetectorSettings
 from perception.frontend import KeyframeSettings
@@ -42,29 +43,6 @@ class IngestSettings(Limits):
     """The bounded ingest queue between zenoh callbacks and the worker thread, and the decoder's bounds."""
 
     queue_size: int = Field(64, ge=1, description="frames held before the oldest is dropped")
-
-
-class GraphSettings(BaseModel):
-    """iSAM2 pose graph noise models and solver parameters."""
-
-    odometry_sigma_m: float = Field(0.02, gt=0, description="odometry between-factor translation sigma")
-    odometry_sigma_deg: float = Field(1.0, gt=0, description="odometry between-factor rotation sigma")
-    prior_sigma_m: float = Field(1e-4, gt=0)
-    prior_sigma_deg: float = Field(0.01, gt=0)
-    relinearize_threshold: float = Field(
-        0.1,
-        gt=0,
-        description="iSAM2 relinearizeThreshold (gtsam's default; "
-        "`objslam bench isam2`: p95 update 4x lower than 0.01, same ATE)",
-    )
-    relinearize_skip: int = Field(1, ge=1)
-    window_keyframes: int = Field(
-        400,
-        ge=2,
-        description="keyframes in the bounded iSAM2 window (older ones are "
-        "fixed there; the whole graph is solved in a child process)",
-    )
-    window_step: int = Field(100, ge=1, description="keyframes added before the window rolls forward")
 
 
 class PersistenceSettings(BaseModel):

@@ -15,6 +15,7 @@ newer one it skipped, and why.
 from __future__ import annotations
 
 import dataclasses
+import enum
 import hashlib
 import io
 import logging
@@ -80,7 +81,7 @@ class _PlainUnpickler(pickle.Unpickler):
             return super().find_class(module, name)
         if module.startswith(_OWN_PACKAGES):
             cls = super().find_class(module, name)
-            if isinstance(cls, type) and dataclasses.is_dataclass(cls):
+            if isinstance(cls, type) and (dataclasses.is_dataclass(cls) or issubclass(cls, enum.Enum)):
                 return cls
         raise SnapshotError(f"snapshot refers to {module}.{name}, which is not plain data")
 

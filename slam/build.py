@@ -2,15 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import fields
 from pathlib import Path
-from typing import Any
-
-from pydantic import BaseModel
 
 from graph.object_landmarks import ObjectLandmarks
-from graph.pose_graph import NoiseSettings
-from graph.window import WindowedGraph, WindowSettings
+from graph.window import WindowedGraph
 from loops.closer import LoopCloser
 from perception.frame import CameraModel
 from perception.frontend import ExternalOdometry, VisualOdometry
@@ -20,20 +15,6 @@ from rl.proposer import PolicyProposer
 from slam.core import SlamCore, Tracking, TrackingFactory
 from slam.runner import Runner
 from slam.settings import SlamConfig
-
-
-def from_settings(cls: Any, *sections: BaseModel) -> Any:
-    """A component's frozen config dataclass from the same-named fields of configuration sections.
-
-    Where two sections share a field name the earlier section wins (keyframes.min_inliers over odometry's).
-    """
-    names = {f.name for f in fields(cls)}
-    values: dict = {}
-    for section in sections:
-        for k, v in section.model_dump().items():
-            if k in names:
-                values.setdefault(k, v)
-    return cls(**values)
 
 
 def load_proposer(path: Path | None, radius: int, candidates: int) -> PolicyProposer:
@@ -61,7 +42,7 @@ def tracking_factory(settings: SlamConfig, graph: WindowedGraph) -> TrackingFact
 
 def new_graph(settings: SlamConfig) -> WindowedGraph:
     """An empty bounded pose graph."""
-    return WindowedGraph(from_settings(NoiseSettings, settings.graph), from_settings(WindowSettings, settings.graph))
+    return WindowedGraph(settings.graph)
 
 
 def build_core(settings: SlamConfig, runner: Runner | None = None, graph: WindowedGraph | None = None) -> SlamCore:

@@ -6,11 +6,12 @@ Each component's section is defined beside the component (``loops.settings.LoopS
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 from pydantic import Field
 
 from graph.object_landmarks import LandmarkSettings
+from graph.settings import GraphSettings
 from loops.settings import LoopSettings
 from perception.frontend import KeyframeSettings
 from perception.odometry import OdometrySettings
@@ -52,4 +53,4 @@ class SlamConfig(Protocol):
     def objects(self) -> ObjectSettings: ...
 
     @property
-    def graph(self) -> Any: ...
+    def graph(self) -> GraphSettings: ...

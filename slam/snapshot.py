@@ -15,7 +15,7 @@ import numpy as np
 from graph.window import WindowedGraph
 from loops.records import LoopRecord, Verified
 from perception.frontend import ExternalOdometry
-from slam.build import build_core, from_settings
+from slam.build import build_core
 from slam.core import SlamCore
 from slam.records import FrameRecord, KeyframeLoops
 from slam.runner import Done, Handle, Runner
@@ -74,9 +74,7 @@ def _loop_results(saved: Any) -> KeyframeLoops | None:
 
 def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | None = None) -> SlamCore:
     """A core that continues from ``state`` (of ``core_state``) exactly as the saved one would have."""
-    from graph.window import WindowSettings
-
-    graph = WindowedGraph.from_state(state["graph"], from_settings(WindowSettings, settings.graph))
+    graph = WindowedGraph.from_state(state["graph"], settings.graph)
     core = build_core(settings, runner, graph)
     if state["camera"] is not None:
         tracking = core.tracking_factory(state["camera"], state["external_odometry"])

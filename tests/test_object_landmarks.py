@@ -110,7 +110,7 @@ def test_landmarks_follow_splits_merges_and_dropped_objects():
     for j, p in ((1, a), (5, a), (2, b)):
         np.testing.assert_allclose(g.landmark(j), p, atol=1e-6)
     live = {i for _, i in lm.assigned.values()}
-    assert None not in live and not live & g._removed
+    assert None not in live and not live & g.books.removed
     assert all(g.factors[i].b == j for j, i in lm.assigned.values())
     lm.sync([_obj(1, {1, 2, 3})])  # everything merged into one object (an over-merge); then it is dropped
     assert g.landmarks_in_solver() == {1} and len(lm.assigned) == 14
@@ -127,7 +127,7 @@ def test_a_measurement_still_waiting_is_withdrawn_when_its_track_moves():
     lm.sync([_obj(3, {7})])
     assert lm.assigned == {(0, 7): (3, None)} and g.num_landmarks == 0  # one keyframe: not observable yet
     lm.sync([_obj(4, {7})])
-    assert g._pending[3] == [] and lm.assigned == {(0, 7): (4, None)} and len(g._pending[4]) == 1
+    assert g.books.pending[3] == [] and lm.assigned == {(0, 7): (4, None)} and len(g.books.pending[4]) == 1
     lm.observe(2, [(7, _seen(poses[2], p), 0.05)])
     assert g.landmarks_in_solver() == {4} and all(i is not None for _, i in lm.assigned.values())
     # sigma: at least the configured floor, at least the points' extent
@@ -165,7 +165,7 @@ def test_the_pipeline_puts_objects_in_the_graph_and_re_clusters_after_loop_closu
     assert worst <= bound
     # every landmark measurement the bookkeeping holds is a live factor of the landmark it names
     assert all(
-        i is not None and i not in p.graph._removed and p.graph.factors[i].b == j
+        i is not None and i not in p.graph.books.removed and p.graph.factors[i].b == j
         for j, i in p.landmarks.assigned.values()
         if j in p.graph.landmarks_in_solver()
     )

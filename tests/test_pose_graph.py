@@ -82,7 +82,7 @@ def test_a_failed_update_leaves_the_graph_as_before_and_later_keyframes_still_go
     # (here: to a keyframe that does not exist); iSAM2 kept x12, so every later keyframe failed with
     # "key x12 already exists"
     with pytest.raises(SolverError):
-        g._update([FactorRecord(11, 30, np.eye(4), 0.02, 1.0)], [chain[-1]])
+        g.update([FactorRecord(11, 30, np.eye(4), 0.02, 1.0)], [chain[-1]])
     with pytest.raises(SolverError):
         g.add_between(3, 40, np.eye(4), 0.02, 1.0)
     assert (g.num_keyframes, g.num_factors, len(g.factors), g.factorization) == (12, 12, 12, "CHOLESKY")
@@ -221,22 +221,22 @@ def test_a_wider_range_sigma_keeps_biased_object_measurements_from_shrinking_the
 
 
 def test_range_sigmas_and_rotated_landmark_priors_round_trip_through_the_factor_columns():
-    from graph.factors import LANDMARK, from_columns, position_covariance, to_columns
+    from graph.factors import FactorKind, from_columns, position_covariance, to_columns
 
     R = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
     records = [
-        FactorRecord(2, 0, np.array([0.5, 0.1, 2.0]), 0.1, 0.0, 1.345, LANDMARK, range_sigma_m=0.3),
+        FactorRecord(2, 0, np.array([0.5, 0.1, 2.0]), 0.1, 0.0, 1.345, FactorKind.LANDMARK, range_sigma_m=0.3),
         FactorRecord(
             0,
-            -1,
+            None,
             np.array([1.0, 2.0, 0.5]),
             0.1,
             0.0,
             None,
-            LANDMARK,
+            FactorKind.LANDMARK,
             R @ position_covariance(np.array([0.5, 0.1, 2.0]), 0.1, 0.3) @ R.T,
         ),
-        FactorRecord(1, -1, np.array([1.0, 2.0, 0.5]), 0.1, 0.0, None, LANDMARK),
+        FactorRecord(1, None, np.array([1.0, 2.0, 0.5]), 0.1, 0.0, None, FactorKind.LANDMARK),
         FactorRecord(0, 1, np.eye(4), 0.02, 1.0),
     ]
     back = from_columns(to_columns(records))
@@ -246,3 +246,109 @@ def test_range_sigmas_and_rotated_landmark_priors_round_trip_through_the_factor_
         assert (b.covariance is None) == (r.covariance is None)
         if r.covariance is not None:
             assert np.allclose(b.covariance, r.covariance, atol=0)
+
+
+# The payload of a snapshot holding {"records": [...]}, written by release 0.1.0's ``service.persistence.encode``
+# with its ``FactorRecord``s (an int ``kind``, ``b`` = -1 on a prior): a pose prior, a Huber between-factor, a
+# landmark prior and a landmark measurement with a range sigma.
+RECORDS_V0_1_0 = (
+    "MwIAAAAAAAAEAAAAAAAAAIAAAAAAAAAAgAAAAAAAAAAYAAAAAAAAABgAAAAAAAAAgAWVKAIAAAAAAAB9lCiMBmZvcm1hdJRLAYwF"
+    "c3RhdGWUfZSMB3JlY29yZHOUXZQojA1ncmFwaC5mYWN0b3JzlIwMRmFjdG9yUmVjb3JklJOUKYGUfZQojAFhlEsAjAFilEr/////"
+    "jAttZWFzdXJlbWVudJSME251bXB5Ll9jb3JlLm51bWVyaWOUjAtfZnJvbWJ1ZmZlcpSTlCiXjAVudW1weZSMBWR0eXBllJOUjAJm"
+    "OJSJiIeUUpQoSwOMATyUTk5OSv////9K/////0sAdJRiSwRLBIaUjAFDlHSUUpSMB3NpZ21hX22URz8aNuLrHEMtjAlzaWdtYV9k"
+    "ZWeURz+EeuFHrhR7jAdodWJlcl9rlE6MBGtpbmSUSwCMCmNvdmFyaWFuY2WUTowNcmFuZ2Vfc2lnbWFfbZROdWJoCCmBlH2UKGgL"
+    "SwBoDEsBaA1oECiXaBZLBEsEhpRoGnSUUpRoHUc/lHrhR64Ue2geRz/wAAAAAAAAaB9HQAgAAAAAAABoIEsAaCFOaCJOdWJoCCmB"
+    "lH2UKGgLSwRoDEr/////aA1oECiXaBZLA4WUaBp0lFKUaB1HP7mZmZmZmZpoHkcAAAAAAAAAAGgfTmggSwFoIU5oIk51YmgIKYGU"
+    "fZQoaAtLAWgMSwRoDWgQKJdoFksDhZRoGnSUUpRoHUc/uZmZmZmZmmgeRwAAAAAAAAAAaB9HP/WFHrhR64VoIEsBaCFOaCJHP9Mz"
+    "MzMzMzN1YmVzdS4AAAAAAADwPwAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAA8D8AAAAAAAAAAAAAAAAAAAAA"
+    "AAAAAAAAAAAAAAAAAAAAAAAAAAAAAPA/AAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAADwPwAAAAAAAPA/AAAA"
+    "AAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAADwPwAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAA"
+    "8D8AAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAAPA/AAAAAAAA8D8AAAAAAAAAQAAAAAAAAOA/AAAAAAAA4D+a"
+    "mZmZmZm5PwAAAAAAAABA"
+)
+
+
+def test_factor_records_pickled_by_release_0_1_0_restore_with_kinds_and_no_second_end():
+    import base64
+
+    from graph.factors import FactorKind
+    from service.persistence import decode
+
+    old = decode(base64.b64decode(RECORDS_V0_1_0))["records"]
+    expected = [
+        FactorRecord(0, None, np.eye(4), 1e-4, 0.01),
+        FactorRecord(0, 1, np.eye(4), 0.02, 1.0, 3.0),
+        FactorRecord(4, None, np.array([1.0, 2.0, 0.5]), 0.1, 0.0, None, FactorKind.LANDMARK),
+        FactorRecord(1, 4, np.array([0.5, 0.1, 2.0]), 0.1, 0.0, 1.345, FactorKind.LANDMARK, range_sigma_m=0.3),
+    ]
+    assert len(old) == len(expected)
+    for r, e in zip(old, expected, strict=True):
+        assert type(r.kind) is FactorKind
+        assert (r.a, r.b, r.sigma_m, r.sigma_deg, r.huber_k, r.kind, r.covariance, r.range_sigma_m) == (
+            e.a,
+            e.b,
+            e.sigma_m,
+            e.sigma_deg,
+            e.huber_k,
+            e.kind,
+            e.covariance,
+            e.range_sigma_m,
+        )
+        assert np.array_equal(r.measurement, e.measurement)
+        factor, wanted = r.to_gtsam(), e.to_gtsam()  # a prior where b was -1
+        assert type(factor) is type(wanted) and list(factor.keys()) == list(wanted.keys())
+
+
+def test_factor_records_round_trip_through_the_snapshot_format_kinds_included():
+    from graph.factors import FactorKind
+    from service.persistence import decode, encode, seal, unseal
+
+    records = [
+        FactorRecord(3, None, np.array([1.0, 2.0, 0.5]), 0.1, 0.0, None, FactorKind.LANDMARK, 0.01 * np.eye(3)),
+        FactorRecord(0, 2, np.eye(4), 0.02, 1.0, 3.0),
+    ]
+    back = decode(unseal(seal(encode({"records": records}))))["records"]
+    for r, b in zip(records, back, strict=True):
+        assert (b.a, b.b, b.kind, b.huber_k) == (r.a, r.b, r.kind, r.huber_k) and type(b.kind) is FactorKind
+        assert np.array_equal(b.measurement, r.measurement)
+        assert (b.covariance is None) == (r.covariance is None)
+        assert r.covariance is None or np.array_equal(b.covariance, r.covariance)
+
+
+def test_factor_columns_without_kinds_are_pose_factors_and_minus_one_is_a_prior():
+    from graph.factors import FactorKind, from_columns
+
+    columns = {  # the columns of a snapshot from before landmarks
+        "a": np.array([0, 0]),
+        "b": np.array([-1, 1]),
+        "measurement": np.stack([np.eye(4), np.eye(4)]),
+        "sigma_m": np.array([1e-4, 0.02]),
+        "sigma_deg": np.array([0.01, 1.0]),
+        "huber_k": np.array([np.nan, 3.0]),
+    }
+    prior, between = from_columns(columns)
+    assert (prior.b, prior.kind, prior.huber_k, between.b, between.kind, between.huber_k) == (
+        None,
+        FactorKind.POSE,
+        None,
+        1,
+        FactorKind.POSE,
+        3.0,
+    )
+
+
+def test_the_graph_settings_are_the_configuration_section_frozen_and_strict():
+    import pydantic
+
+    from graph.settings import GraphSettings
+    from service.config import ConfigError, load_settings
+
+    settings = load_settings(None, {"graph": {"window_keyframes": 20, "odometry_sigma_m": 0.05}}).graph
+    assert type(settings) is GraphSettings and (settings.window_keyframes, settings.odometry_sigma_m) == (20, 0.05)
+    assert settings.partial_relinearization_check and PoseGraph(settings).settings is settings
+    with pytest.raises(pydantic.ValidationError):
+        settings.window_step = 3
+    with pytest.raises(ConfigError, match="graph"):
+        load_settings(None, {"graph": {"window_size": 20}})
+    with pytest.raises(ConfigError, match=r"graph\.window_keyframes"):
+        load_settings(None, {"graph": {"window_keyframes": 1}})

@@ -22,7 +22,7 @@ from tests.conftest import make_frame
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("service", "slam", "loops", "graph", "perception", "rl", "sources", "evaluation")
-SLAM_SECTIONS = ("keyframes", "odometry", "loops", "detector", "objects")
+SLAM_SECTIONS = ("keyframes", "odometry", "loops", "detector", "objects", "graph")
 
 
 def _reachable_models(root: Any, limit: int = 200_000) -> set[int]:

@@ -3,6 +3,8 @@ child process solves the whole graph, and which ends where the whole graph in on
 
 from __future__ import annotations
 
+import os
+import signal
 from collections import defaultdict
 
 import gtsam
@@ -12,10 +14,12 @@ from gtsam.symbol_shorthand import L, X
 
 from bench import isam2 as sim
 from evaluation.trajectory_metrics import trajectory_error
-from graph.factors import LANDMARK, FactorRecord
+from graph.factors import FactorKind, FactorRecord
 from graph.geometry import relative
-from graph.pose_graph import NoiseSettings, PoseGraph
-from graph.window import WindowedGraph, WindowSettings
+from graph.interface import Graph
+from graph.pose_graph import PoseGraph
+from graph.settings import GraphSettings
+from graph.window import WindowedGraph
 from service.config import load_settings
 from service.node import ServiceNode
 from service.persistence import decode, encode, seal, unseal
@@ -59,7 +63,7 @@ def windowed():
     graphs = []
 
     def make(window: int, step: int) -> WindowedGraph:
-        graphs.append(WindowedGraph(NoiseSettings(), WindowSettings(window, step)))
+        graphs.append(WindowedGraph(GraphSettings(window_keyframes=window, window_step=step)))
         return graphs[-1]
 
     yield make
@@ -67,11 +71,16 @@ def windowed():
         g.close()
 
 
+def test_both_graphs_implement_the_graph_interface(windowed):
+    assert isinstance(PoseGraph(), Graph) and isinstance(windowed(400, 100), Graph)
+    assert not isinstance(object(), Graph)
+
+
 def test_below_the_window_it_is_the_whole_graph_update_for_update(windowed):
     full, window = PoseGraph(), windowed(400, 100)
     _explore(full, 300)
     _explore(window, 300)
-    assert window.start == 0 and window._global is None  # never rolled: no child process
+    assert window.start == 0 and window.child is None  # never rolled: no child process
     assert (window.num_keyframes, window.num_factors, window.updates) == (
         full.num_keyframes,
         full.num_factors,
@@ -86,7 +95,7 @@ def test_below_the_window_it_is_the_whole_graph_update_for_update(windowed):
     window.flush()  # the end of a run: the batch optimum, where iSAM2 alone stops short
     optimum = _optimum(full)
     assert np.abs(full.poses() - optimum).max() > 10 * np.abs(window.poses() - optimum).max()
-    assert np.abs(window.poses() - optimum).max() < 1e-4 and window._global is None
+    assert np.abs(window.poses() - optimum).max() < 1e-4 and window.child is None
     assert np.array_equal(WindowedGraph.from_state(window.state()).poses(), window.poses())
 
 
@@ -94,7 +103,7 @@ def _optimum(graph: PoseGraph) -> np.ndarray:
     """The batch Levenberg-Marquardt optimum of a graph's live factors (iSAM2 itself stops short of it)."""
     factors = gtsam.NonlinearFactorGraph()
     for i, f in enumerate(graph.factors):
-        if i not in graph._removed:
+        if i not in graph.books.removed:
             factors.add(f.to_gtsam())
     values = gtsam.LevenbergMarquardtOptimizer(factors, graph.isam.calculateEstimate()).optimize()
     return np.stack([values.atPose3(X(k)).matrix() for k in range(graph.num_keyframes)])
@@ -105,7 +114,7 @@ def test_a_rolled_window_ends_where_the_whole_graph_does(windowed):
     truth = np.array(_explore(full, 700))
     _explore(window, 700)
     assert window.start >= 700 - 130 and window.local.num_keyframes <= 130  # the window stayed bounded
-    assert window._frozen  # landmarks left the window (and some came back: the loops return to old rooms)
+    assert window.frozen_landmarks()  # landmarks left the window (and some came back: the loops return to old rooms)
     window.flush()
     assert window.solve_latencies  # the child solved the whole graph
     optimum = _optimum(full)
@@ -269,8 +278,8 @@ def test_a_factor_to_a_fixed_keyframe_becomes_a_prior_with_the_same_error(window
     fixed, free = g.start - 2, g.start + 1
     for a, b in ((fixed, free), (free, fixed)):
         record = FactorRecord(a, b, sim._noisy(np.eye(4), 0.5, 30.0, rng), 0.02, 1.0, huber_k=3.0)
-        prior = g._localize(record, set())
-        assert prior.b == -1 and prior.a == free - g.start
+        prior = g.localize(record, set())
+        assert prior.b is None and prior.a == free - g.start
         for _ in range(5):
             T_free = sim._noisy(np.eye(4), 1.0, 40.0, rng)
             values = gtsam.Values()
@@ -285,9 +294,9 @@ def test_a_landmark_measured_from_a_fixed_keyframe_becomes_a_world_prior_with_th
     """Wider along the viewing ray than across it: the world prior's covariance is the measurement's, rotated."""
     g = _rolled(windowed, np.random.default_rng(12), 30.0)
     fixed = g.start - 2
-    record = FactorRecord(fixed, 3, np.array([0.4, -0.2, 2.0]), 0.1, 0.0, None, LANDMARK, range_sigma_m=0.3)
-    prior = g._localize(record, {3})
-    assert prior.b == -1 and prior.a == 3 and prior.covariance.shape == (3, 3)
+    record = FactorRecord(fixed, 3, np.array([0.4, -0.2, 2.0]), 0.1, 0.0, None, FactorKind.LANDMARK, range_sigma_m=0.3)
+    prior = g.localize(record, {3})
+    assert prior.b is None and prior.a == 3 and prior.covariance.shape == (3, 3)
     T = g.pose(fixed)
     landmark = T[:3, :3] @ record.measurement + T[:3, 3]
     errors = {}
@@ -313,9 +322,9 @@ def test_a_child_that_dies_is_restarted_with_the_whole_history(windowed):
     for k, (a, b) in enumerate(zip(true[:-1], true[1:]), start=1):
         g.add_keyframe(relative(a, b) @ drift, 0.01, 0.5)
         if k == 120:
-            first = g._global
-            first._process.kill()
+            first = g.child
+            os.kill(first.pid, signal.SIGKILL)
     g.add_loop(0, 200, relative(true[0], true[200]), 0.01, 0.5)
     g.flush()
-    assert first.dead and g._global is not first and g._child_starts == 2
+    assert first.dead and g.child is not first and g.child_starts == 2
     assert np.linalg.norm(g.pose(200)[:3, 3] - true[200][:3, 3]) < 0.05  # the new child solved the whole loop
