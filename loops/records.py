@@ -8,7 +8,7 @@ the candidate reached: a candidate rejected by PnP has no residual, one never ga
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, fields
 from enum import StrEnum
 from typing import Any
 
@@ -101,10 +101,6 @@ class LoopRecord:
         """A record from its JSON form (and from the dicts that snapshots of release 0.1.0 hold)."""
         names = {f.name for f in fields(cls)}
         return cls(**{k: v for k, v in data.items() if k in names})
-
-    def as_dict(self) -> dict[str, Any]:
-        """Every field, set or not (plain data)."""
-        return asdict(self)
 
 
 @dataclass
