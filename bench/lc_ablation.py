@@ -26,7 +26,8 @@ def run_batch_ablation(console: Console, grid_name: str, steps: int, plot: Path,
     from rl.evaluate import evaluate
     from rl.export import export_trainer
     from rl.policy import OnnxPolicy
-    from rl.ppo import TrainConfig, Trainer
+    from rl.ppo import Trainer
+    from rl.train_config import TrainConfig
 
     curves, rows = {}, []
     for label, overrides in VARIANTS.items():

@@ -29,7 +29,8 @@ def train_policy(run_dir: Path, out: Path, steps: int, init_from: Path | None = 
     shape when given); returns its size and training figures."""
     from rl.export import export_trainer
     from rl.gridmap import GridMap
-    from rl.ppo import TrainConfig, Trainer
+    from rl.ppo import Trainer
+    from rl.train_config import TrainConfig
 
     grid = GridMap.load(run_dir / GRID_FILE)
     trainer = Trainer(

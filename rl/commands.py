@@ -97,8 +97,9 @@ def register(app: typer.Typer, console, user_error: type[Exception]) -> None:
         """Train a PPO loop-closure policy for a grid map and export it to ONNX."""
         try:
             from rl.export import export_trainer
-            from rl.ppo import TrainConfig, Trainer
+            from rl.ppo import Trainer
             from rl.pretrain import PretrainConfig
+            from rl.train_config import TrainConfig
         except ImportError as exc:
             raise user_error(f"training needs the train extra (pip install -e '.[train]'): {exc}") from exc
         from tqdm import tqdm

@@ -6,7 +6,6 @@ import json
 from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from rl.networks import OnnxActor, RecurrentNet
@@ -53,14 +52,3 @@ def export_trainer(trainer: Trainer, path: str | Path, wall_s: float, pretrainin
             ],
         },
     )
-
-
-@torch.no_grad()
-def torch_probabilities(actor: RecurrentNet, observations: np.ndarray) -> np.ndarray:
-    """(T, B, 84, 84, 3) observation sequences -> (T, B, n_actions) probabilities, state carried over."""
-    h, c = actor.initial_state(observations.shape[1])
-    out = []
-    for obs in observations:
-        logits, h, c = actor.step(torch.from_numpy(obs), h, c)
-        out.append(torch.softmax(logits, -1).numpy())
-    return np.stack(out)

@@ -35,7 +35,7 @@ class RecurrentNet(nn.Module):
     scaled to match, so every variant sees the image at the same field of view.
 
     ``aux`` > 0 adds ``aux_head``, a second linear layer on the LSTM output with that many logits, for an
-    auxiliary training loss (ppo.py: the visit memory); ``step`` and the ONNX export do not use it.
+    auxiliary training loss (rl/auxiliary.py: the visit memory); ``step`` and the ONNX export do not use it.
     """
 
     def __init__(self, out: int, hidden: int = 128, head_gain: float = 0.01, pool: int = 1, aux: int = 0):

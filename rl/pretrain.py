@@ -29,9 +29,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from rl.auxiliary import aux_action_outputs, aux_classifier_targets
 from rl.env import GridRules, LoopClosureGrid
 from rl.gridmap import GridMap
-from rl.ppo import Trainer, aux_action_outputs, aux_classifier_targets, distinct_frames
+from rl.ppo import Trainer
+from rl.rollout import distinct_frames
 
 
 @dataclass

@@ -22,8 +22,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from rl.evaluate import evaluate
 from rl.export import export_actor
 from rl.policy import OnnxPolicy
-from rl.ppo import TrainConfig, Trainer
+from rl.ppo import Trainer
 from rl.pretrain import MemoryPretrainer, PretrainConfig
+from rl.train_config import TrainConfig
 
 
 def main() -> None:

@@ -10,11 +10,21 @@ import sys
 import numpy as np
 import pytest
 
+from rl.gridmap import GridMap
+from rl.train_config import TrainConfig
+
 torch = pytest.importorskip("torch", reason="the train extra (torch) is not installed")
 
-from rl.gridmap import GridMap  # noqa: E402
-from rl.ppo import TrainConfig, Trainer, distinct_frames  # noqa: E402
-from rl.pretrain import MemoryPretrainer, PretrainConfig, Walks, action_logits, memory_scores, record_walks  # noqa: E402
+from rl.ppo import Trainer  # noqa: E402 -- imports torch: after the importorskip above
+from rl.pretrain import (  # noqa: E402 -- imports torch: after the importorskip above
+    MemoryPretrainer,
+    PretrainConfig,
+    Walks,
+    action_logits,
+    memory_scores,
+    record_walks,
+)
+from rl.rollout import distinct_frames  # noqa: E402 -- imports torch: after the importorskip above
 
 
 def test_recorded_walks_are_seeded_and_a_loop_closure_is_due_exactly_where_the_visit_bit_is_set():

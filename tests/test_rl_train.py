@@ -10,13 +10,27 @@ import sys
 import numpy as np
 import pytest
 
+from rl.batching import balance_weights, batch_length
+from rl.env import GridRules, LoopClosureGrid
+from rl.policy import OnnxPolicy
+from rl.train_config import TrainConfig
+
 torch = pytest.importorskip("torch", reason="the train extra (torch) is not installed")
 
-from rl.env import GridRules, LoopClosureGrid  # noqa: E402
-from rl.export import export_trainer, torch_probabilities  # noqa: E402
-from rl.networks import RecurrentNet  # noqa: E402
-from rl.policy import OnnxPolicy  # noqa: E402
-from rl.ppo import TrainConfig, Trainer, balance_weights, batch_length  # noqa: E402
+from rl.export import export_trainer  # noqa: E402 -- imports torch: after the importorskip above
+from rl.networks import RecurrentNet  # noqa: E402 -- imports torch: after the importorskip above
+from rl.ppo import Trainer  # noqa: E402 -- imports torch: after the importorskip above
+
+
+@torch.no_grad()
+def torch_probabilities(actor: RecurrentNet, observations: np.ndarray) -> np.ndarray:
+    """(T, B, 84, 84, 3) observation sequences -> (T, B, n_actions) probabilities, state carried over."""
+    h, c = actor.initial_state(observations.shape[1])
+    out = []
+    for obs in observations:
+        logits, h, c = actor.step(torch.from_numpy(obs), h, c)
+        out.append(torch.softmax(logits, -1).numpy())
+    return np.stack(out)
 
 
 def _objslam(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
