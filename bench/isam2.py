@@ -1,11 +1,8 @@
 """``objslam bench isam2``: the graph's update cost up to 10,000 poses + 300 landmarks (SPEC 7).
 
-A simulated robot explores a building: rooms on a grid, two laps in each room, corridors between rooms,
-and every fourth visit goes back to a room seen before. The graph gets what the service would give it:
-a noisy odometry factor per keyframe, a Huber loop closure when the robot is back within 0.3 m and
-20 deg of a keyframe at least 150 keyframes old (at most one every 10 keyframes), and every third
-keyframe camera-frame position measurements of up to 4 landmarks (7-8 per room) in view. Landmarks
-enter the solver once two keyframes saw them (``PoseGraph.add_landmark_observations``).
+The graph is fed keyframe by keyframe what the service would give it on a simulated exploration of a
+building (bench/building.py): odometry, Huber loop closures back in earlier rooms, landmark observations.
+Landmarks enter the solver once two keyframes saw them (``PoseGraph.add_landmark_observations``).
 
 Timed: each ``ISAM2.update`` call, and each keyframe's graph work (odometry factor, landmark
 observations, loop closure with its extra convergence steps).
@@ -13,7 +10,6 @@ observations, loop closure with its extra convergence steps).
 
 from __future__ import annotations
 
-import math
 import os
 import time
 from collections import defaultdict
@@ -22,8 +18,25 @@ from pathlib import Path
 
 import numpy as np
 from rich.console import Console
-from scipy.spatial.transform import Rotation
 
+from bench.building import (
+    LANDMARK_SIGMA_M,
+    LOOP_EVERY,
+    LOOP_MAX_DEG,
+    LOOP_MIN_AGE,
+    LOOP_RADIUS_M,
+    LOOP_SIGMA,
+    OBSERVE_EVERY,
+    OBSERVE_MAX,
+    OBSERVE_RANGE_M,
+    ODOMETRY_SIGMA,
+    STEP_M,
+    Building,
+    cell,
+    in_view,
+    noisy,
+    revisit,
+)
 from bench.report import load_note, markdown_table, record, show_table
 from graph.geometry import relative
 from graph.interface import Graph
@@ -31,95 +44,7 @@ from graph.pose_graph import PoseGraph
 from graph.settings import GraphSettings
 from graph.window import WindowedGraph
 
-STEP_M = 0.1  # distance between keyframes
-ROOM_SPACING_M, ROOM_COLUMNS, LAP_RADIUS_M, WALL_RADIUS_M = 6.0, 7, 1.5, 2.8
-ODOMETRY_SIGMA = (0.006, 0.2)  # m, deg: factor sigmas = simulated noise std (VO: 0.08, 3 / sqrt(200 inliers))
-LOOP_SIGMA = (0.01, 0.5)
-LANDMARK_SIGMA_M = 0.05
-LOOP_MIN_AGE, LOOP_EVERY, LOOP_RADIUS_M, LOOP_MAX_DEG = 50, 10, 0.3, 20.0
-OBSERVE_EVERY, OBSERVE_MAX, OBSERVE_RANGE_M = 3, 4, 4.0
 P95_TARGET_MS, RATIO_TARGET = 20.0, 2.0
-
-
-def camera_pose(position: np.ndarray, forward: np.ndarray) -> np.ndarray:
-    """Camera-to-world pose of an upright camera (z forward, y down) at ``position`` looking along ``forward``."""
-    z = np.array([forward[0], forward[1], 0.0]) / np.hypot(forward[0], forward[1])
-    y = np.array([0.0, 0.0, -1.0])
-    T = np.eye(4)
-    T[:3, :3] = np.column_stack([np.cross(y, z), y, z])
-    T[:3, 3] = position
-    return T
-
-
-@dataclass
-class Building:
-    """Ground truth: keyframe poses and landmark positions of the simulated exploration."""
-
-    poses: list[np.ndarray]
-    landmarks: np.ndarray  # (M, 3)
-
-    @classmethod
-    def explore(cls, n_poses: int, n_landmarks: int, rng: np.random.Generator, returns: bool = True) -> Building:
-        """Rooms in order; with ``returns`` every fourth visit goes back to a random room seen before."""
-        rooms: list[np.ndarray] = []
-        poses: list[np.ndarray] = []
-        here = np.zeros(3)
-        visit = 0
-        while len(poses) < n_poses:
-            if returns and visit % 4 == 3 and len(rooms) > 2:  # back to a room seen before
-                room = rooms[int(rng.integers(len(rooms) - 1))]
-            else:
-                i = len(rooms)
-                row, col = divmod(i, ROOM_COLUMNS)
-                room = np.array(
-                    [(col if row % 2 == 0 else ROOM_COLUMNS - 1 - col) * ROOM_SPACING_M, row * ROOM_SPACING_M, 1.0]
-                )
-                rooms.append(room)
-            start = float(rng.uniform(0, 2 * math.pi))
-            entry = room + LAP_RADIUS_M * np.array([math.cos(start), math.sin(start), 0.0])
-            poses += _corridor(here, entry) if poses else []
-            poses += _laps(room, start, 2)
-            here = poses[-1][:3, 3]
-            visit += 1
-        return cls(poses[:n_poses], _walls(rooms, n_landmarks, rng))
-
-
-def _corridor(a: np.ndarray, b: np.ndarray) -> list[np.ndarray]:
-    n = max(1, int(np.linalg.norm(b - a) / STEP_M))
-    return [camera_pose(a + (b - a) * (i + 1) / n, b - a) for i in range(n)]
-
-
-def _laps(centre: np.ndarray, start: float, laps: int) -> list[np.ndarray]:
-    """Keyframes around a circle in the room, the camera looking outwards at the walls."""
-    per_lap = int(2 * math.pi * LAP_RADIUS_M / STEP_M)
-    poses = []
-    for i in range(laps * per_lap):
-        angle = start + 2 * math.pi * i / per_lap
-        radial = np.array([math.cos(angle), math.sin(angle), 0.0])
-        poses.append(camera_pose(centre + LAP_RADIUS_M * radial, radial))
-    return poses
-
-
-def _walls(rooms: list[np.ndarray], n: int, rng: np.random.Generator) -> np.ndarray:
-    """``n`` landmarks spread over the rooms' walls at table-to-shelf heights."""
-    room = np.arange(n) % len(rooms)
-    angle = rng.uniform(0, 2 * math.pi, n)
-    height = rng.uniform(-0.5, 0.8, n)
-    return np.stack(
-        [
-            np.array(rooms)[room, 0] + WALL_RADIUS_M * np.cos(angle),
-            np.array(rooms)[room, 1] + WALL_RADIUS_M * np.sin(angle),
-            np.array(rooms)[room, 2] + height,
-        ],
-        axis=1,
-    )
-
-
-def _noisy(T: np.ndarray, sigma_m: float, sigma_deg: float, rng: np.random.Generator) -> np.ndarray:
-    E = np.eye(4)
-    E[:3, :3] = Rotation.from_rotvec(rng.normal(0, math.radians(sigma_deg), 3)).as_matrix()
-    E[:3, 3] = rng.normal(0, sigma_m, 3)
-    return T @ E
 
 
 def simulate(
@@ -159,25 +84,25 @@ def _build(graph: Graph, world: Building, rng: np.random.Generator, loops_and_la
     last_loop = -LOOP_EVERY
     started = time.perf_counter()
     for k, T in enumerate(world.poses):
-        seen = _in_view(T, world.landmarks, rng) if k % OBSERVE_EVERY == 0 and loops_and_landmarks else []
-        match = _revisit(world.poses, cells, k) if k - last_loop >= LOOP_EVERY and loops_and_landmarks else None
+        seen = in_view(T, world.landmarks, rng) if k % OBSERVE_EVERY == 0 and loops_and_landmarks else []
+        match = revisit(world.poses, cells, k) if k - last_loop >= LOOP_EVERY and loops_and_landmarks else None
         n_before = len(seconds)
         t0 = time.perf_counter()
         if k == 0:
             graph.add_first(T)
         else:
-            odometry = _noisy(relative(world.poses[k - 1], T), *ODOMETRY_SIGMA, rng)
+            odometry = noisy(relative(world.poses[k - 1], T), *ODOMETRY_SIGMA, rng)
             graph.add_keyframe(odometry, *ODOMETRY_SIGMA)
         if seen:
             graph.add_landmark_observations(k, seen, LANDMARK_SIGMA_M)
         if match is not None:
-            graph.add_loop(match, k, _noisy(relative(world.poses[match], T), *LOOP_SIGMA, rng), *LOOP_SIGMA)
+            graph.add_loop(match, k, noisy(relative(world.poses[match], T), *LOOP_SIGMA, rng), *LOOP_SIGMA)
         per_keyframe.append(time.perf_counter() - t0)
         updates_per_keyframe.append(len(seconds) - n_before)
         loops += match is not None
         last_loop = k if match is not None else last_loop
         observations += len(seen)
-        cells[_cell(T)].append(k)
+        cells[cell(T)].append(k)
     update_s, total_s = np.array(seconds), time.perf_counter() - started
     t0 = time.perf_counter()
     graph.flush()  # the window: the whole graph's batch optimum (one iSAM2: nothing to wait for)
@@ -199,39 +124,6 @@ def _build(graph: Graph, world: Building, rng: np.random.Generator, loops_and_la
         "solves": len(latencies),
         "solve_s": latencies if len(latencies) else None,
     }
-
-
-def _cell(T: np.ndarray) -> tuple[int, int]:
-    return int(T[0, 3] // LOOP_RADIUS_M), int(T[1, 3] // LOOP_RADIUS_M)
-
-
-def _revisit(poses: list[np.ndarray], cells: dict, k: int) -> int | None:
-    """The oldest keyframe at least LOOP_MIN_AGE old within the loop radius and angle of keyframe k."""
-    T = poses[k]
-    cx, cy = _cell(T)
-    near = sorted(
-        i for dx in (-1, 0, 1) for dy in (-1, 0, 1) for i in cells.get((cx + dx, cy + dy), ()) if i <= k - LOOP_MIN_AGE
-    )
-    for i in near:
-        rel = relative(poses[i], T)
-        angle = math.degrees(np.linalg.norm(Rotation.from_matrix(rel[:3, :3]).as_rotvec()))
-        if np.linalg.norm(rel[:3, 3]) <= LOOP_RADIUS_M and angle <= LOOP_MAX_DEG:
-            return i
-    return None
-
-
-def _in_view(T: np.ndarray, landmarks: np.ndarray, rng: np.random.Generator) -> list[tuple[int, np.ndarray]]:
-    """Up to OBSERVE_MAX landmarks in the camera's field of view and range, with noisy camera-frame positions."""
-    inv = np.linalg.inv(T)
-    p = landmarks @ inv[:3, :3].T + inv[:3, 3]
-    visible = np.nonzero(
-        (p[:, 2] > 0.3)
-        & (np.linalg.norm(p, axis=1) < OBSERVE_RANGE_M)
-        & (np.abs(p[:, 0]) < 0.6 * p[:, 2])
-        & (np.abs(p[:, 1]) < 0.5 * p[:, 2])
-    )[0]
-    visible = visible[np.argsort(p[visible, 2])][:OBSERVE_MAX]
-    return [(int(j), p[j] + rng.normal(0, LANDMARK_SIGMA_M, 3)) for j in visible]
 
 
 def window_mean(seconds: np.ndarray, centre: int, half: int = 100) -> float:
@@ -362,7 +254,7 @@ def run_isam2_bench(console: Console, poses: int, landmarks: int, seed: int, wri
             "",
         ),
     ]
-    rows = [[name, *(cell(r) for r in results), target] for name, cell, target in metrics]
+    rows = [[name, *(value(r) for r in results), target] for name, value, target in metrics]
     show_table(console, f"iSAM2 at {poses} poses + {landmarks} landmarks", header, rows)
     notes = (
         "Simulated exploration of a building: rooms 6 m apart on a grid, two 1.5 m-radius laps per room, "

@@ -11,8 +11,9 @@ import gtsam
 import numpy as np
 import pytest
 from gtsam.symbol_shorthand import L, X
+from scipy.spatial.transform import Rotation
 
-from bench import isam2 as sim
+from bench import building as sim
 from evaluation.trajectory_metrics import trajectory_error
 from graph.factors import FactorKind, FactorRecord
 from graph.geometry import relative
@@ -41,20 +42,20 @@ def _explore(graph, n: int, seed: int = 0, landmarks: int = 40) -> list[np.ndarr
     cells: dict = defaultdict(list)
     last_loop = -sim.LOOP_EVERY
     for k, T in enumerate(world.poses):
-        seen = sim._in_view(T, world.landmarks, rng) if k % sim.OBSERVE_EVERY == 0 else []
-        match = sim._revisit(world.poses, cells, k) if k - last_loop >= sim.LOOP_EVERY else None
+        seen = sim.in_view(T, world.landmarks, rng) if k % sim.OBSERVE_EVERY == 0 else []
+        match = sim.revisit(world.poses, cells, k) if k - last_loop >= sim.LOOP_EVERY else None
         if k == 0:
             graph.add_first(T)
         else:
             graph.add_keyframe(
-                sim._noisy(relative(world.poses[k - 1], T), *sim.ODOMETRY_SIGMA, rng), *sim.ODOMETRY_SIGMA
+                sim.noisy(relative(world.poses[k - 1], T), *sim.ODOMETRY_SIGMA, rng), *sim.ODOMETRY_SIGMA
             )
         if seen:
             graph.add_landmark_observations(k, seen, sim.LANDMARK_SIGMA_M)
         if match is not None:
-            graph.add_loop(match, k, sim._noisy(relative(world.poses[match], T), *sim.LOOP_SIGMA, rng), *sim.LOOP_SIGMA)
+            graph.add_loop(match, k, sim.noisy(relative(world.poses[match], T), *sim.LOOP_SIGMA, rng), *sim.LOOP_SIGMA)
             last_loop = k
-        cells[sim._cell(T)].append(k)
+        cells[sim.cell(T)].append(k)
     return world.poses
 
 
@@ -132,11 +133,11 @@ def _circle() -> tuple[list[np.ndarray], np.ndarray]:
     for i in range(201):
         T = np.eye(4)
         angle = 2 * np.pi * i / 200
-        T[:3, :3] = sim.Rotation.from_euler("z", angle).as_matrix()
+        T[:3, :3] = Rotation.from_euler("z", angle).as_matrix()
         T[:3, 3] = [5 * np.cos(angle), 5 * np.sin(angle), 0.0]
         true.append(T)
     drift = np.eye(4)
-    drift[:3, :3] = sim.Rotation.from_euler("z", 0.003).as_matrix()
+    drift[:3, :3] = Rotation.from_euler("z", 0.003).as_matrix()
     return true, drift
 
 
@@ -266,7 +267,7 @@ def _rolled(windowed, rng, turn_deg: float) -> WindowedGraph:
     g = windowed(4, 1)
     g.add_first(np.eye(4))
     for _ in range(12):
-        g.add_keyframe(sim._noisy(np.eye(4), 0.1, turn_deg, rng))
+        g.add_keyframe(sim.noisy(np.eye(4), 0.1, turn_deg, rng))
     assert g.start >= 8
     return g
 
@@ -277,11 +278,11 @@ def test_a_factor_to_a_fixed_keyframe_becomes_a_prior_with_the_same_error(window
     g = _rolled(windowed, rng, 5.0)
     fixed, free = g.start - 2, g.start + 1
     for a, b in ((fixed, free), (free, fixed)):
-        record = FactorRecord(a, b, sim._noisy(np.eye(4), 0.5, 30.0, rng), 0.02, 1.0, huber_k=3.0)
+        record = FactorRecord(a, b, sim.noisy(np.eye(4), 0.5, 30.0, rng), 0.02, 1.0, huber_k=3.0)
         prior = g.localize(record, set())
         assert prior.b is None and prior.a == free - g.start
         for _ in range(5):
-            T_free = sim._noisy(np.eye(4), 1.0, 40.0, rng)
+            T_free = sim.noisy(np.eye(4), 1.0, 40.0, rng)
             values = gtsam.Values()
             values.insert(X(fixed), gtsam.Pose3(g.pose(fixed)))
             values.insert(X(free), gtsam.Pose3(T_free))
