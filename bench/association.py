@@ -96,7 +96,7 @@ def pair_counts(scene: Scene, i: int, j: int, config: NPDAConfig) -> Counts:
     T = inverse(scene.poses[j]) @ scene.poses[i]
     result = associate(scene.dets[i], scene.depth_m(i), scene.dets[j], scene.depth_m(j), scene.K, T, config)
     a, b = scene.ids[i], scene.ids[j]
-    truth = {(l, k) for l in range(len(a)) for k in range(len(b)) if a[l] and a[l] == b[k]}
+    truth = {(m, n) for m in range(len(a)) for n in range(len(b)) if a[m] and a[m] == b[n]}
     pred = set(result.pairs)
     return Counts(len(pred & truth), len(pred - truth), len(truth - pred))
 

@@ -117,7 +117,7 @@ def measure(dataset_dir: str, every: int, configs: list[DetectorSettings]) -> li
         detector.detect(first)  # warm-up, not timed
     for i in indices:
         rgb = data.frame(i).rgb
-        for detector, run in zip(detectors, runs):
+        for detector, run in zip(detectors, runs, strict=True):
             cpu = time.process_time()
             dets = detector.detect(rgb)
             run.cpu_ms.append((time.process_time() - cpu) * 1000.0)

@@ -46,7 +46,7 @@ def run_two_pass(spec: str, work: Path, steps: int, init_from: Path | None = Non
     first = work / "appearance"
     rows = [dict(run_one(spec, first), mode="appearance")]
     if not (first / GRID_FILE).is_file():
-        return rows + [{"dataset": spec, "mode": "policy", "skipped": "trajectory never crosses itself"}]
+        return [*rows, {"dataset": spec, "mode": "policy", "skipped": "trajectory never crosses itself"}]
     policy = work / "policy.onnx"
     trained = train_policy(first, policy, steps, init_from)
     rows.append(

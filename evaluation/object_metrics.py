@@ -64,7 +64,7 @@ def match_objects(objects: list, truth: list[ObjectTruth], margin: float = 0.25)
     if cost.size == 0:
         return []
     rows, cols = linear_sum_assignment(cost)
-    return [(int(a), int(b)) for a, b in zip(rows, cols) if cost[a, b] < 1e6]
+    return [(int(a), int(b)) for a, b in zip(rows, cols, strict=True) if cost[a, b] < 1e6]
 
 
 def object_scores(objects: list, truth: list[ObjectTruth], axis_scale: float) -> dict[str, Any]:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from enum import Enum
+from enum import StrEnum
 from pathlib import Path
 from typing import Annotated
 
@@ -21,7 +21,7 @@ TABLE_3_1 = {
 }
 
 
-class BatchMode(str, Enum):
+class BatchMode(StrEnum):
     entropy = "entropy"
     fixed = "fixed"
 

@@ -19,6 +19,7 @@ the memory the policy must keep, privileged information for the trainer's auxili
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -44,7 +45,7 @@ class GridRules:
 class LoopClosureGrid(gym.Env):
     """Random walk in a grid map; the policy reports loop closures from 84 x 84 cone-of-vision images."""
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 4}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 4}
 
     def __init__(
         self,

@@ -70,8 +70,8 @@ class GridMap:
     def loop_index(self) -> np.ndarray:
         """(rows, cols) int array: 0 off loop-closure locations, l + 1 on location l (the action)."""
         index = np.zeros(self.shape, dtype=np.int32)
-        for l, (r, c) in enumerate(self.loops):
-            index[r, c] = l + 1
+        for loop, (r, c) in enumerate(self.loops):
+            index[r, c] = loop + 1
         return index
 
     def cell_action(self, loop: int) -> int:
@@ -134,7 +134,8 @@ def feature_colours(n: int) -> np.ndarray:
     hues = (0.13 + np.arange(n) * 0.618033988749895) % 1.0  # pure red is the agent's
     values = 0.65 + 0.35 * ((np.arange(n) // 7) % 2)
     return np.array(
-        [[round(255 * x) for x in colorsys.hsv_to_rgb(h, 0.85, v)] for h, v in zip(hues, values)], dtype=np.uint8
+        [[round(255 * x) for x in colorsys.hsv_to_rgb(h, 0.85, v)] for h, v in zip(hues, values, strict=True)],
+        dtype=np.uint8,
     ).reshape(n, 3)
 
 

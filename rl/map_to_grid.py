@@ -102,7 +102,7 @@ def crossing_cells(cells: np.ndarray, timestamps: np.ndarray, min_gap_s: float) 
     """Cells visited in more than one pass, with their number of passes (a pass starts after a >= gap absence)."""
     last: dict[tuple[int, int], float] = {}
     passes: dict[tuple[int, int], int] = {}
-    for (r, c), t in zip(map(tuple, cells), timestamps):
+    for (r, c), t in zip(map(tuple, cells), timestamps, strict=True):
         key = (int(r), int(c))
         if key not in last or t - last[key] >= min_gap_s:
             passes[key] = passes.get(key, 0) + 1
@@ -132,7 +132,7 @@ def build_grid(
     free = np.zeros(frame.shape, bool)
     for dr in range(-free_radius, free_radius + 1):
         for dc in range(-free_radius, free_radius + 1):
-            shifted = track + [dr, dc]
+            shifted = track + np.array([dr, dc])  # (N, 2) cells moved by (dr, dc)
             ok = frame.inside(shifted)
             free[shifted[ok, 0], shifted[ok, 1]] = True
     walls = ~free

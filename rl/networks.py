@@ -6,6 +6,8 @@ layer, an LSTM cell that carries memory of the places seen, and a linear head.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import torch
 from torch import nn
@@ -95,7 +97,7 @@ class RecurrentNet(nn.Module):
         cuts = [0, *sorted(set(torch.nonzero(starts.any(dim=1)).flatten().tolist()) - {0}), T]
         h, c = h.unsqueeze(0), c.unsqueeze(0)
         outputs = []
-        for a, b in zip(cuts[:-1], cuts[1:]):
+        for a, b in itertools.pairwise(cuts):
             out, (h, c) = self.lstm(features[a:b], (h * keep[a], c * keep[a]))
             outputs.append(out)
         lstm_out = torch.cat(outputs)

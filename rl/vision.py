@@ -39,7 +39,7 @@ def visible_cells(
     seen = np.zeros(rows * cols, dtype=bool)
     seen[cell[0] * cols + cell[1]] = True  # the agent's own cell
     if idx.size:
-        n = int(math.ceil(dist[idx].max() / step))
+        n = math.ceil(dist[idx].max() / step)
         s = (np.arange(1, n) / n)[None, :, None]  # fractions along each ray, endpoints excluded
         points = np.array(cell, dtype=float)[None, None, :] + s * d[idx][:, None, :]
         pr = np.clip(np.rint(points[..., 0]).astype(int), 0, rows - 1)
@@ -115,10 +115,10 @@ class Renderer:
             tip = (centre[0] + int(HEADINGS[heading][1] * px * 0.45), centre[1] + int(HEADINGS[heading][0] * px * 0.45))
             cv2.arrowedLine(image, centre, tip, (255, 255, 0), max(1, px // 8), tipLength=0.5)
         if px >= 12:
-            for l, (r, c) in enumerate(self.grid.loops):
+            for loop, (r, c) in enumerate(self.grid.loops):
                 cv2.putText(
                     image,
-                    str(l + 1),
+                    str(loop + 1),
                     (c * px + 2, r * px + px - 3),
                     cv2.FONT_HERSHEY_SIMPLEX,
                     px / 40,

@@ -58,5 +58,7 @@ if __name__ == "__main__":
     print(f"gtsam {version('gtsam')} numpy {np.__version__}")
     print(f"odometry chain: update {a:.3f} ms around 1000 poses, {b:.3f} ms at {n}: ratio {b / a:.2f}")
     if "--service" in sys.argv:
-        s, l, ratio = service_graph(n)
-        print(f"whole graph in one iSAM2: {s:.2f} ms per keyframe around 1000, {l:.2f} at {n}: ratio {ratio:.2f}")
+        small, large, ratio = service_graph(n)
+        print(
+            f"whole graph in one iSAM2: {small:.2f} ms per keyframe around 1000, {large:.2f} at {n}: ratio {ratio:.2f}"
+        )

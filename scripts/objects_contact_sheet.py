@@ -32,7 +32,7 @@ def draw_objects(rgb: np.ndarray, world_to_camera: np.ndarray, K: Intrinsics, ob
     img = cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR)
     h, w = img.shape[:2]
     centres = transform(world_to_camera, np.array([obj["mean"] for obj in objects], float).reshape(-1, 3))
-    for obj, (u, v), z in zip(objects, *project(centres, K)):
+    for obj, (u, v), z in zip(objects, *project(centres, K), strict=True):
         if z >= 0.2 and 0 <= u < w and 0 <= v < h:
             cv2.circle(img, (int(u), int(v)), 8, (0, 0, 255), 3)
             cv2.putText(

@@ -54,7 +54,7 @@ def _draw_shapes(img: np.ndarray, rng: np.random.Generator, size_px: tuple[float
     centres = (rng.uniform(0, 1, (count, 2)) * (w, h)).tolist()
     thick = rng.integers(1, 4, count).tolist()
     cols = np.clip(colours, 0, 255).tolist()
-    for kind, (hw, hh), (cx, cy), t, c in zip(kinds, half, centres, thick, cols):
+    for kind, (hw, hh), (cx, cy), t, c in zip(kinds, half, centres, thick, cols, strict=True):
         p0 = (int(cx - hw), int(cy - hh))
         if kind <= 1:
             cv2.rectangle(img, p0, (int(cx + hw), int(cy + hh)), c, -1)
@@ -180,7 +180,7 @@ class Renderer:
         if cam[:, 2].min() >= _NEAR:
             return self._bounds(cam)
         pts = []
-        for p, q in zip(cam, cam[[1, 2, 3, 0]]):
+        for p, q in zip(cam, cam[[1, 2, 3, 0]], strict=True):
             if p[2] >= _NEAR:
                 pts.append(p)
             if (p[2] >= _NEAR) != (q[2] >= _NEAR):

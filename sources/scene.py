@@ -138,7 +138,8 @@ def _valid(obj: ObjectTruth, support: int, placed: list[ObjectTruth], cams: np.n
         base = placed[support]
         if not _inside(poly, np.array(base.center), (base.size[0] - 0.04, base.size[1] - 0.04), base.yaw):
             return False
-    for other, other_support in zip(placed, [e[5] for e in _LAYOUT]):
+    # placed holds the objects of the first len(placed) layout entries, in layout order
+    for other, other_support in zip(placed, [e[5] for e in _LAYOUT[: len(placed)]], strict=True):
         same_level = (support >= 0) == (other_support >= 0)
         if same_level and _overlap(poly, _footprint(np.array(other.center), other.size, other.yaw)):
             return False
@@ -198,5 +199,5 @@ def find_loops(
         trace = np.einsum("iab,jab->ij", rot[rows], rot)
         gap = np.arange(len(poses))[None] - rows[:, None]
         ii, jj = np.nonzero((gap >= min_gap) & (dist <= max_dist) & (trace >= cos_max))
-        pairs.extend(zip((rows[ii]).tolist(), jj.tolist()))
+        pairs.extend(zip((rows[ii]).tolist(), jj.tolist(), strict=True))
     return sorted(pairs)

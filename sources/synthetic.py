@@ -104,7 +104,7 @@ class SyntheticDataset(Dataset):
         self._objects = scene.place_objects(self.seed, self._poses[:, :3, 3])
         self._odometry = scene.drifting_odometry(self._poses, self.seed, float(odom_drift))
         self._labels = sorted({o.label for o in self._objects})
-        self.min_pixels = max(20, int(round(400 * width * height / (640 * 480))))
+        self.min_pixels = max(20, round(400 * width * height / (640 * 480)))
         self.min_side = 0.04 * min(width, height)
         self._renderer = Renderer(_surfaces(self.seed, self._objects), self.camera.color, width, height)
         n_pix = width * height

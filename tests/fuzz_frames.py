@@ -215,7 +215,7 @@ class Storm:
         return pack(broken, body), Reason.BAD_HEADER.value
 
     def header_not_object(self) -> Message:
-        header, body = self.valid()
+        _, body = self.valid()
         return pack(self._pick([b"[1, 2]", b"42", b"null", b'"OSLM"']), body), Reason.BAD_HEADER.value
 
     def header_too_long(self) -> Message:
@@ -319,7 +319,7 @@ class Storm:
                 [math.nan, *odometry[1:]],
                 [*odometry[:3], math.inf, 0.0, 0.0, 1.0],
                 odometry[:6],
-                odometry + [1.0],
+                [*odometry, 1.0],
                 [*odometry[:6], 2.0],
                 [*odometry[:3], 0.0, 0.0, 0.0, 0.0],
                 [1e9, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0],

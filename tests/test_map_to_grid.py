@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from itertools import pairwise
+
 import numpy as np
 import pytest
 
@@ -24,7 +26,7 @@ def square_laps(laps: int = 2, side: float = 2.0, step: float = 0.05) -> tuple[n
     corners = np.array([[0, 0], [side, 0], [side, side], [0, side], [0, 0]], float)
     poses = []
     for _ in range(laps):
-        for a, b in zip(corners[:-1], corners[1:]):
+        for a, b in pairwise(corners):
             yaw = np.arctan2(*(b - a)[::-1])
             for s in np.arange(0, 1, step / side):
                 poses.append(upright_pose([*(a + s * (b - a)), 1.2], yaw))

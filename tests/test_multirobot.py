@@ -93,7 +93,7 @@ def test_two_robots_on_one_router_keep_separate_maps_and_status(router):
         replays = {
             r: _objslam("replay", spec, "--rate", "20", "--robot", r, *client) for r, (spec, _) in ROBOTS.items()
         }  # both publish at the same time
-        for r, proc in replays.items():
+        for proc in replays.values():
             out, _ = proc.communicate(timeout=120)
             assert proc.returncode == 0, out
 

@@ -72,12 +72,12 @@ def test_batched_u_statistics_equal_pairwise_mann_whitney() -> None:
     prev = [rng.integers(1000, 1100, n) for n in (40, 25, 60)]
     cur = [rng.integers(1020, 1120, n) for n in (30, 50)]
     u, mean, var = u_statistics(prev, cur)
-    for l, a in enumerate(prev):
+    for p, a in enumerate(prev):
         for k, b in enumerate(cur):
             mw = mann_whitney(b, a)  # eq. 2.4: current samples below previous ones
-            assert u[l, k] == pytest.approx(mw.u)
-            assert mean[l, k] == pytest.approx(mw.mean)
-            assert var[l, k] == pytest.approx(mw.var)
+            assert u[p, k] == pytest.approx(mw.u)
+            assert mean[p, k] == pytest.approx(mw.mean)
+            assert var[p, k] == pytest.approx(mw.var)
 
 
 def test_compatibility_interval_agrees_with_score_below_the_mean() -> None:

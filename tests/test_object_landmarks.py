@@ -4,6 +4,7 @@ and the pipeline keeping both in step with the optimisation."""
 from __future__ import annotations
 
 from dataclasses import replace
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -52,12 +53,12 @@ def test_repose_equals_mapping_again_with_the_new_poses(scene):
     again.clusterer.recluster()
     got, want = mapper.clusterer.features, again.clusterer.features
     assert len(got) == len(want)
-    for f, g in zip(got, want):
+    for f, g in zip(got, want, strict=True):
         assert f.sources == g.sources and f.track_id == g.track_id
         np.testing.assert_allclose(f.mean, g.mean, atol=1e-9)
         np.testing.assert_allclose(f.cov, g.cov, atol=1e-9)
     assert [(o.label, o.tracks) for o in objects] == [(o.label, o.tracks) for o in again.objects]
-    for o, p in zip(objects, again.objects):
+    for o, p in zip(objects, again.objects, strict=True):
         np.testing.assert_allclose(o.mean, p.mean, atol=1e-9)
 
 
@@ -78,7 +79,7 @@ def _chain(n: int) -> tuple[PoseGraph, list[np.ndarray]]:
     g = PoseGraph()
     poses = [_rigid([0.0, 0.02 * k, 0.0], [0.1 * k, 0.0, 0.0]) for k in range(n)]
     g.add_first(poses[0])
-    for a, b in zip(poses, poses[1:]):
+    for a, b in pairwise(poses):
         g.add_keyframe(np.linalg.inv(a) @ b)
     return g, poses
 

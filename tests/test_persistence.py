@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from itertools import pairwise
 
 import numpy as np
 import pytest
@@ -94,7 +95,7 @@ def test_pose_graph_replayed_from_state_is_identical_and_retracted_factors_stay_
     true, drift = _loop_square()
     g = PoseGraph()
     g.add_first(true[0])
-    for a, b in zip(true[:-1], true[1:]):
+    for a, b in pairwise(true):
         g.add_keyframe(np.linalg.inv(a) @ b @ drift)
     g.add_between(10, 12, np.linalg.inv(true[10]) @ true[12], 0.02, 1.0)
     kept = g.add_loop(0, 40, np.linalg.inv(true[0]) @ true[40], 0.01, 0.5)

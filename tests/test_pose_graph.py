@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from itertools import pairwise
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -54,7 +56,7 @@ def test_loop_closure_pulls_a_drifted_chain_back_and_can_be_retracted():
     g.add_first(true[0])
     drift = np.eye(4)
     drift[:3, :3] = Rotation.from_euler("z", 0.01).as_matrix()
-    for a, b in zip(true[:-1], true[1:]):
+    for a, b in pairwise(true):
         g.add_keyframe(np.linalg.inv(a) @ b @ drift)
     before = np.linalg.norm(g.pose(40)[:3, 3] - true[40][:3, 3])
     index = g.add_loop(0, 40, np.linalg.inv(true[0]) @ true[40], 0.01, 0.5)
@@ -240,7 +242,7 @@ def test_range_sigmas_and_rotated_landmark_priors_round_trip_through_the_factor_
         FactorRecord(0, 1, np.eye(4), 0.02, 1.0),
     ]
     back = from_columns(to_columns(records))
-    for r, b in zip(records, back):
+    for r, b in zip(records, back, strict=True):
         assert (b.a, b.b, b.kind, b.huber_k, b.range_sigma_m) == (r.a, r.b, r.kind, r.huber_k, r.range_sigma_m)
         assert np.array_equal(b.measurement, r.measurement)
         assert (b.covariance is None) == (r.covariance is None)

@@ -20,9 +20,9 @@ def _rewrite_header(payload: bytes, edit) -> bytes:
     return PREAMBLE.pack(b"OSLM", 1, 0, len(head)) + head + body
 
 
-def _reason(payload: bytes, limits: Limits = Limits()) -> Reason:
+def _reason(payload: bytes, limits: Limits | None = None) -> Reason:
     with pytest.raises(FrameRejected) as info:
-        decode_frame(payload, limits)
+        decode_frame(payload, Limits() if limits is None else limits)
     return info.value.reason
 
 
@@ -167,7 +167,7 @@ def test_image_whose_size_disagrees_with_header_is_rejected():
 def test_corrupt_image_bytes_are_bad_image():
     f = make_frame()
     payload = bytearray(encode_frame(f, "png"))
-    header, body = split_message(bytes(payload))
+    _, body = split_message(bytes(payload))
     start = len(payload) - len(body)
     payload[start : start + 40] = b"\0" * 40  # destroy the colour PNG signature
     assert _reason(bytes(payload)) is Reason.BAD_IMAGE

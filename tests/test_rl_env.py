@@ -61,7 +61,7 @@ def test_seeded_rollouts_are_deterministic():
         obs, _ = env.reset(seed=seed)
         cells = [env.cell]
         for a in [0, 1, 0, 0, 2, 0] * 10:
-            obs, r, term, trunc, info = env.step(a)
+            obs, r, term, trunc, _ = env.step(a)
             cells.append((env.cell, env.heading, r, term))
             if term or trunc:
                 break
@@ -98,7 +98,11 @@ def test_cone_covers_60_degrees_and_walls_occlude():
     assert not seen[4, 0]  # behind the agent
     assert seen[4, 1]  # its own cell
     open_seen = visible_cells(np.zeros((9, 9), bool), (4, 1), heading=1)
-    angles = [np.degrees(np.arctan2(abs(r - 4), c - 1)) for r, c in zip(*np.nonzero(open_seen)) if (r, c) != (4, 1)]
+    angles = [
+        np.degrees(np.arctan2(abs(r - 4), c - 1))
+        for r, c in zip(*np.nonzero(open_seen), strict=True)
+        if (r, c) != (4, 1)
+    ]
     assert max(angles) <= 30.0 + 1e-9 and min(angles) == 0.0
 
 
@@ -173,7 +177,7 @@ def test_training_episodes_truncate_at_max_steps():
     env = LoopClosureGrid("config1", rules=GridRules(max_steps=50))
     env.reset(seed=1)
     oracle = OraclePolicy()
-    for t in range(50):
+    for _ in range(50):
         _, _, term, trunc, _ = env.step(int(oracle.act(None, [env])[0]))
         assert not term
     assert trunc

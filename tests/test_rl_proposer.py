@@ -3,6 +3,7 @@ keyframe poses of the synthetic room it was trained for."""
 
 from __future__ import annotations
 
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,7 @@ def test_loop_closure_actions_hold_for_the_step_and_propose_older_keyframes_near
         out.append(proposer.observe(kf, pose))
         cells.append(tuple(int(v) for v in proposer.frame.cells(pose[:3, 3][None])[0]))
         steps.append(proposer.steps)
-    changes = sum(a != b for a, b in zip(cells, cells[1:])) + 1
+    changes = sum(a != b for a, b in pairwise(cells)) + 1
     assert proposer.steps == changes and len(proposer.inference_s) == changes  # one policy run per step
     proposals = [(kf, p) for kf, p in enumerate(out) if p is not None]
     assert any(p.candidates for _, p in proposals), "the trained policy closes no loop on its own room"

@@ -122,7 +122,7 @@ def test_detections_match_visible_instances_with_iou_0_7(small: SyntheticDataset
         inst = small.detection_instance_ids(i)
         assert not f.extra  # ground truth never enters the frames
         assert len(inst) == len(f.detections)
-        for det, oid in zip(f.detections, inst):
+        for det, oid in zip(f.detections, inst, strict=True):
             x1, y1, x2, y2 = det.box
             assert 0 <= x1 < x2 <= 320 and 0 <= y1 < y2 <= 240 and 0.4 <= det.score <= 0.99
             if oid == 0:
@@ -263,7 +263,7 @@ def test_orb_pnp_recovers_true_relative_pose_over_3_frames(full: SyntheticDatase
         obj, img = [], []
         for m in matcher.match(d0, d1):
             u, v = k0[m.queryIdx].pt
-            z = depth[int(round(v)), int(round(u))]
+            z = depth[round(v), round(u)]
             if np.isfinite(z):
                 obj.append([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, z])
                 img.append(k1[m.trainIdx].pt)

@@ -114,11 +114,11 @@ def test_flags_a_camera_file_makes_moot_are_reported(tmp_path, caplog):
 def test_missing_and_malformed_directories_give_clear_errors(tmp_path):
     with pytest.raises(DatasetError, match="not found"):
         open_dataset(str(tmp_path / "nope"))
-    with pytest.raises(DatasetError, match="associations.txt"):
+    with pytest.raises(DatasetError, match=r"associations\.txt"):
         open_dataset(str(tmp_path))
     _write_tum(tmp_path / "d")
     (tmp_path / "d" / "camera.json").write_text('{"fx": 1}')
-    with pytest.raises(DatasetError, match="camera.json"):
+    with pytest.raises(DatasetError, match=r"camera\.json"):
         open_dataset(str(tmp_path / "d"))
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import signal
 from collections import defaultdict
+from itertools import pairwise
 
 import gtsam
 import numpy as np
@@ -146,7 +147,7 @@ def test_a_loop_to_a_fixed_keyframe_pulls_the_window_at_once_and_can_be_retracte
     true, drift = _circle()
     g = windowed(40, 10)
     g.add_first(true[0])
-    for a, b in zip(true[:-1], true[1:]):
+    for a, b in pairwise(true):
         g.add_keyframe(relative(a, b) @ drift, 0.01, 0.5)
     assert g.start > 100
     error = lambda: np.linalg.norm(g.pose(200)[:3, 3] - true[200][:3, 3])
@@ -203,7 +204,7 @@ def _run(window: int, step: int):
 def test_the_service_pipeline_with_a_small_window_maps_like_the_whole_graph():
     """Visual odometry, loop closures and object landmarks through a 20-keyframe window (the scene's ~100
     keyframes roll it 16 times) end within a millimetre of the whole graph's trajectory error."""
-    whole, whole_error, whole_start = _run(400, 100)
+    _, whole_error, whole_start = _run(400, 100)
     small, small_error, small_start = _run(20, 5)
     assert whole_start == 0 and small_start >= 75
     assert small.loops.n_accepted >= 5 and small.graph.num_landmarks >= 3
@@ -320,7 +321,7 @@ def test_a_child_that_dies_is_restarted_with_the_whole_history(windowed):
     true, drift = _circle()
     g = windowed(40, 10)
     g.add_first(true[0])
-    for k, (a, b) in enumerate(zip(true[:-1], true[1:]), start=1):
+    for k, (a, b) in enumerate(pairwise(true), start=1):
         g.add_keyframe(relative(a, b) @ drift, 0.01, 0.5)
         if k == 120:
             first = g.child
