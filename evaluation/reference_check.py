@@ -123,11 +123,15 @@ def repaired(
     step ``i -> i + 1`` among ``checks`` replaced by the depth's motion; frames before such a step are moved with
     it (the newest part of the trajectory keeps its place). Returns the poses and the refuted steps' first
     frames."""
-    steps = {c.src - first_frame: c for c in checks if c.dst == c.src + 1 and c.refuted(margin_m)}
+    steps = {
+        c.src - first_frame: c.T_depth
+        for c in checks
+        if c.dst == c.src + 1 and c.refuted(margin_m) and c.T_depth is not None  # refuted: T_depth is set
+    }
     out = reference.copy()
     # walk back from the last frame: each frame keeps its reference motion to the next one, except across a
     # refuted step, where the depth's motion is used
     for i in range(len(reference) - 2, -1, -1):
-        step = inverse(steps[i].T_depth) if i in steps else relative(reference[i], reference[i + 1])
+        step = inverse(steps[i]) if i in steps else relative(reference[i], reference[i + 1])
         out[i] = out[i + 1] @ inverse(step)
     return out, sorted(i + first_frame for i in steps if 0 <= i < len(reference) - 1)

@@ -19,7 +19,6 @@ the memory the policy must keep, privileged information for the trainer's auxili
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
 
 import gymnasium as gym
 import numpy as np
@@ -45,7 +44,10 @@ class GridRules:
 class LoopClosureGrid(gym.Env):
     """Random walk in a grid map; the policy reports loop closures from 84 x 84 cone-of-vision images."""
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 4}
+    # gymnasium reads render modes from this class attribute; Env declares it a plain dict, so no ClassVar
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 4}  # noqa: RUF012 -- gymnasium's Env.metadata dict
+    observation_space: gym.spaces.Box
+    action_space: gym.spaces.Discrete
 
     def __init__(
         self,
@@ -76,11 +78,13 @@ class LoopClosureGrid(gym.Env):
         super().reset(seed=seed)
         options = options or {}
         if "cell" in options:
-            self.cell = tuple(int(v) for v in options["cell"])
+            row, col = options["cell"]
+            self.cell = (int(row), int(col))
             if self.grid.walls[self.cell]:
                 raise ValueError(f"start cell {self.cell} is a wall")
         else:
-            self.cell = tuple(int(v) for v in self._free[self.np_random.integers(len(self._free))])
+            row, col = self._free[self.np_random.integers(len(self._free))]
+            self.cell = (int(row), int(col))
         self.heading = int(options.get("heading", self.np_random.integers(4)))
         self.t = 0
         self.first_visit = np.full(self.grid.shape, -1, dtype=np.int64)

@@ -57,7 +57,7 @@ def evaluate(
     obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(envs)])
     policy.reset(runs)
     active = np.ones(runs, bool)
-    tested = [set() for _ in range(runs)]
+    tested: list[set[int]] = [set() for _ in range(runs)]
     due = taken = correct = steps = 0
     for _ in range(max_steps):
         actions = policy.act(obs, envs)

@@ -62,11 +62,9 @@ class GroundFrame:
 
     @classmethod
     def from_json(cls, doc: dict) -> GroundFrame:
-        return cls(
-            *(np.array(doc[k], float) for k in ("origin", "row_axis", "col_axis", "up")),
-            float(doc["cell_m"]),
-            tuple(doc["shape"]),
-        )
+        origin, row_axis, col_axis, up = (np.array(doc[k], float) for k in ("origin", "row_axis", "col_axis", "up"))
+        rows, cols = doc["shape"]
+        return cls(origin, row_axis, col_axis, up, float(doc["cell_m"]), (int(rows), int(cols)))
 
 
 def camera_up(poses: np.ndarray) -> np.ndarray:
@@ -93,9 +91,9 @@ def ground_frame(
     rc = np.stack([cams @ row_axis, cams @ col_axis], axis=-1)
     lo = rc.min(axis=0) - margin_cells * cell_m
     hi = rc.max(axis=0) + margin_cells * cell_m
-    shape = tuple(int(v) for v in np.ceil((hi - lo) / cell_m))
+    rows, cols = np.ceil((hi - lo) / cell_m)
     origin = lo[0] * row_axis + lo[1] * col_axis + floor * up
-    return GroundFrame(origin, row_axis, col_axis, up, cell_m, shape)
+    return GroundFrame(origin, row_axis, col_axis, up, cell_m, (int(rows), int(cols)))
 
 
 def crossing_cells(cells: np.ndarray, timestamps: np.ndarray, min_gap_s: float) -> dict[tuple[int, int], int]:

@@ -7,15 +7,19 @@ layer, an LSTM cell that carries memory of the places seen, and a linear head.
 from __future__ import annotations
 
 import itertools
+from typing import TypeVar
 
 import numpy as np
 import torch
 from torch import nn
 
+Layer = TypeVar("Layer", nn.Linear, nn.Conv2d)
 
-def _init(layer: nn.Module, gain: float = np.sqrt(2)) -> nn.Module:
+
+def _init(layer: Layer, gain: float = np.sqrt(2)) -> Layer:
     nn.init.orthogonal_(layer.weight, gain)
-    nn.init.zeros_(layer.bias)
+    if layer.bias is not None:  # every layer here has one
+        nn.init.zeros_(layer.bias)
     return layer
 
 

@@ -118,7 +118,8 @@ class MemoryPretrainer:
     """Trains a ``Trainer``'s actor (encoder, LSTM, auxiliary head) on recorded walks; see the module doc."""
 
     def __init__(self, trainer: Trainer, cfg: PretrainConfig):
-        if trainer.actor.aux_head is None:
+        aux_head = trainer.actor.aux_head
+        if aux_head is None:
             raise ValueError("memory pretraining needs the actor's auxiliary head (aux_coef > 0)")
         if trainer.cfg.aux_targets != "visited+place+action":
             raise ValueError("memory pretraining needs the aux targets visited+place+action (their action classifier)")
@@ -127,9 +128,11 @@ class MemoryPretrainer:
         actor = trainer.actor
         with torch.no_grad():
             h = actor.hidden
-            actor.lstm.bias_ih_l0[h : 2 * h] = cfg.forget_bias  # PyTorch gate order: input, forget, cell, output
-            actor.lstm.bias_hh_l0[h : 2 * h] = 0.0
-        self.params = [*actor.encoder.parameters(), *actor.lstm.parameters(), *actor.aux_head.parameters()]
+            # PyTorch gate order: input, forget, cell, output
+            actor.lstm.get_parameter("bias_ih_l0")[h : 2 * h] = cfg.forget_bias
+            actor.lstm.get_parameter("bias_hh_l0")[h : 2 * h] = 0.0
+        self.aux_head = aux_head
+        self.params = [*actor.encoder.parameters(), *actor.lstm.parameters(), *aux_head.parameters()]
         self.optimizer = torch.optim.Adam(self.params, lr=cfg.lr)
 
     def loss(self, walks: Walks) -> tuple[torch.Tensor, torch.Tensor]:
@@ -192,6 +195,6 @@ class MemoryPretrainer:
         if cfg.policy_from_aux:
             with torch.no_grad():
                 rows = aux_action_outputs(self.n_loops)
-                actor.head.weight.copy_(actor.aux_head.weight[rows])
-                actor.head.bias.copy_(actor.aux_head.bias[rows])
+                actor.head.weight.copy_(self.aux_head.weight[rows])
+                actor.head.bias.copy_(self.aux_head.bias[rows])
         return history

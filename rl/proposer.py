@@ -76,7 +76,8 @@ class PolicyProposer:
     def observe(self, keyframe: int, pose: np.ndarray) -> Proposal | None:
         """Record the keyframe at its cell; on entering a new cell run the policy; while its loop-closure
         action holds (the same cell), propose candidates for this keyframe."""
-        cell = tuple(int(v) for v in self.frame.cells(pose[:3, 3][None])[0])
+        row, col = self.frame.cells(pose[:3, 3][None])[0]
+        cell = (int(row), int(col))
         if not self.frame.inside(np.array([cell]))[0]:
             self._active = None
             return None  # off the trained map: the policy has nothing to say
@@ -100,11 +101,13 @@ class PolicyProposer:
 
     def _candidates(self, target: tuple[int, int], heading: int, pose: np.ndarray) -> list[int]:
         """Older keyframes at the proposed location: the same heading first, then the nearest in pose."""
+        exclude = self.exclude_last
+        assert exclude is not None  # resolved from the policy's metadata in __post_init__
         found = []
         for dr in range(-self.radius, self.radius + 1):
             for dc in range(-self.radius, self.radius + 1):
                 for kf, step, h, position, forward in self._visits.get((target[0] + dr, target[1] + dc), []):
-                    if step < self.steps - self.exclude_last:
+                    if step < self.steps - exclude:
                         # the angle between the viewing directions (not graph.geometry.rotation_angle of the
                         # relative rotation, which also counts roll about the optical axis)
                         angle = float(np.arccos(np.clip(forward @ pose[:3, 2], -1.0, 1.0)))

@@ -3,13 +3,19 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from graph.trajectory import Trajectory, nearest_timestamps
 from perception.frame import CameraModel, Frame
+
+
+def as_box(values: Iterable[float]) -> tuple[float, float, float, float]:
+    """(x1, y1, x2, y2) floats of a detection box; ValueError unless there are exactly four values."""
+    x1, y1, x2, y2 = (float(v) for v in values)
+    return x1, y1, x2, y2
 
 
 class DatasetError(Exception):

@@ -161,7 +161,9 @@ class Renderer:
         drawn: dict[int, tuple[tuple[int, int, int, int], np.ndarray]] = {}
         for k, surf in enumerate(self.surfaces):
             coeffs = _plane_coeffs(surf, R, o)
-            rect = None if coeffs is None else self._rect(surf, R, o)
+            if coeffs is None:
+                continue
+            rect = self._rect(surf, R, o)
             if rect is not None and self._scan(surf, k, coeffs, rect, inv, sid):
                 drawn[k] = (rect, coeffs)
         rgb = np.zeros((self.height, self.width, 3), np.uint8)

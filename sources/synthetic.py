@@ -19,13 +19,14 @@ Spec: ``synthetic:room?seed=0&frames=300&width=640&height=480&fps=30`` plus opti
 
 from __future__ import annotations
 
+from typing import Any
 from urllib.parse import parse_qsl, urlsplit
 
 import numpy as np
 
 from perception.frame import CameraModel, Detection, Frame, Intrinsics
 from sources import scene
-from sources.base import Dataset, DatasetError, ObjectTruth, Trajectory
+from sources.base import Dataset, DatasetError, ObjectTruth, Trajectory, as_box
 from sources.raycast import (
     Render,
     Renderer,
@@ -198,7 +199,7 @@ class SyntheticDataset(Dataset):
             box = np.array([x1, y1, x2, y2]) + jitter * np.array([bw, bh, bw, bh])
             box = np.clip(box, 0.0, [w, h, w, h])
             score = float(np.clip(0.45 + 0.5 * (1.0 - np.exp(-count / (3.0 * self.min_pixels))) + noise, 0.4, 0.99))
-            found.append((Detection(obj.label, score, tuple(float(v) for v in box)), obj.id))
+            found.append((Detection(obj.label, score, as_box(box)), obj.id))
         for _ in range(rng.poisson(self.fp_rate)):
             found.append((self._false_positive(rng), 0))
         found.sort(key=lambda d: -d[0].score)
@@ -292,7 +293,7 @@ def parse_synthetic_spec(spec: str) -> SyntheticDataset:
         pairs = parse_qsl(parts.query, keep_blank_values=True, strict_parsing=bool(parts.query))
     except ValueError:
         raise DatasetError(f"malformed synthetic parameters {parts.query!r} (expected key=value&...)") from None
-    kwargs: dict[str, int | float] = {}
+    kwargs: dict[str, Any] = {}  # each value of its parameter's type (_PARAMS)
     for key, raw in pairs:
         if key not in _PARAMS:
             raise DatasetError(f"unknown synthetic parameter {key!r}; known: {', '.join(_PARAMS)}")

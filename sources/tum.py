@@ -13,7 +13,7 @@ from pydantic import BaseModel
 from graph.geometry import pose_from_tum
 from graph.trajectory import nearest_timestamps
 from perception.frame import CameraModel, Detection, Frame, Intrinsics
-from sources.base import Dataset, DatasetError, ObjectTruth, Trajectory
+from sources.base import Dataset, DatasetError, ObjectTruth, Trajectory, as_box
 
 log = logging.getLogger(__name__)
 
@@ -130,7 +130,7 @@ class TumDataset(Dataset):
     @property
     def loops(self) -> list[tuple[int, int]] | None:
         path = self.root / "loops_gt.json"
-        return [tuple(map(int, p)) for p in _read_json(path)] if path.is_file() else None
+        return [(int(i), int(j)) for i, j in _read_json(path)] if path.is_file() else None
 
     def instance_mask(self, index: int) -> np.ndarray | None:
         path = self.root / "instances" / f"{index:06d}.png"
@@ -172,10 +172,7 @@ class TumDataset(Dataset):
                 continue
             try:
                 row = json.loads(line)
-                dets = [
-                    Detection(str(d["label"]), float(d["score"]), tuple(float(v) for v in d["box"]))
-                    for d in row["detections"]
-                ]
+                dets = [Detection(str(d["label"]), float(d["score"]), as_box(d["box"])) for d in row["detections"]]
                 times.append(float(row["t"]))
             except (ValueError, KeyError, TypeError) as exc:
                 raise DatasetError(f"{path}:{n}: bad detections line ({exc})") from None
