@@ -14,7 +14,6 @@ from service.config import load_settings
 from service.run import run_dataset
 from service.scheduler import ThreadedRunner
 from slam.build import build_core
-from slam.snapshot import core_state, restore_core
 from sources import WithoutOdometry, open_dataset
 
 MAPPING_RUNS = 3  # keyframe-mapping rate: median of this many runs (the shared host's steal varies)

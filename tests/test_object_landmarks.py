@@ -17,9 +17,7 @@ from perception.clustering import ObjectEllipsoid
 from perception.features import FeatureConfig, transform_feature
 from perception.object_map import ObjectMapper
 from service.config import load_settings
-from service.scheduler import ThreadedRunner
 from slam.build import build_core
-from slam.snapshot import core_state, restore_core
 from sources import open_dataset
 
 

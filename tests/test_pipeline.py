@@ -5,11 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from service.config import load_settings
 from perception.frame import FrameRejected, Reason
+from service.config import load_settings
 from service.scheduler import ThreadedRunner
 from slam.build import build_core
-from slam.snapshot import core_state, restore_core
 from sources import open_dataset
 from tests.conftest import REDKITCHEN, make_frame, requires_redkitchen
 

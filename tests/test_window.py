@@ -28,7 +28,6 @@ from service.persistence import decode, encode, seal, unseal
 from service.protocol import encode_frame
 from service.replay import frame_publisher
 from service.zenoh_session import open_session
-from service.scheduler import ThreadedRunner
 from slam.build import build_core
 from slam.snapshot import core_state, restore_core
 from sources import open_dataset
