@@ -20,7 +20,7 @@ from perception.camera import Intrinsics
 from perception.clustering import ClusterConfig
 from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
-from sources import ObjectTruth, open_dataset
+from sources import DatasetError, ObjectTruth, ground_truth_of, open_dataset
 from sources.synthetic import SyntheticDataset
 
 TABLE_2_1 = "P 89.3-95.7 %, R 65.4-75.8 % (7 TUM / 7-Scenes sequences)"
@@ -83,7 +83,9 @@ def load_scene(seed: int, frames: int) -> Scene:
         depth.append(f.depth)
         dets.append(list(f.detections or []))
         ids.append(data.detection_instance_ids(i))
-    return Scene(data.camera.color, data.ground_truth.poses, depth, dets, ids, data.objects)
+    if data.objects is None:
+        raise DatasetError(f"{data.name}: no object ground truth")
+    return Scene(data.camera.color, ground_truth_of(data).poses, depth, dets, ids, data.objects)
 
 
 def keyframe_step(frames: int) -> int:

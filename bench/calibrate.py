@@ -107,7 +107,7 @@ def check_loops(dataset: Dataset, loops: list[dict], reference: np.ndarray | Non
     K, out = dataset.camera.depth, []
     for record in (r for r in loops if r.get("accepted") and "relative_pose" in r):
         q, m = record.get("query_frame"), record.get("match_frame")
-        if not all(isinstance(k, int) and 0 <= k < len(dataset) for k in (q, m)):
+        if not (isinstance(q, int) and isinstance(m, int) and 0 <= q < len(dataset) and 0 <= m < len(dataset)):
             raise ValueError(
                 f"loop record {q!r} -> {m!r}: frames must be indices of this dataset's "
                 f"{len(dataset)} frames (loops.json of a run of another dataset?)"

@@ -57,8 +57,9 @@ class ModelRun:
 def _colour(label: str) -> tuple[int, int, int]:
     """A stable bright BGR colour per label."""
     hue = zlib.crc32(label.encode()) % 180
-    hsv = np.uint8([[[hue, 220, 255]]])
-    return tuple(int(c) for c in cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0, 0])
+    hsv = np.array([[[hue, 220, 255]]], np.uint8)
+    b, g, r = (int(c) for c in cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0, 0])
+    return b, g, r
 
 
 def annotate(rgb: np.ndarray, dets: list[Detection], width: int, caption: str = "") -> np.ndarray:

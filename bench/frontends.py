@@ -15,24 +15,30 @@ from rich.console import Console
 
 from bench.report import markdown_table, record
 from evaluation.trajectory_metrics import trajectory_error
+from perception.frame import Frame
 from perception.frontend import KeyframeSettings, VisualOdometry
-from perception.odometry import Features, OdometrySettings
-from sources import open_dataset
+from perception.odometry import FeatureExtractor, Features, OdometrySettings
+from sources import ground_truth_of, open_dataset
+
+
+class SiftExtractor(FeatureExtractor):
+    """SIFT keypoints and descriptors in place of ORB; the keypoints' 3D points as the ORB extractor finds them."""
+
+    def __init__(self, orb: FeatureExtractor):
+        super().__init__(orb.camera, orb.config)
+        self.sift = cv2.SIFT.create(orb.config.n_features)
+
+    def extract(self, frame: Frame) -> Features:
+        kps, desc = self.sift.detectAndCompute(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY), None)
+        px = np.array([k.pt for k in kps], dtype=np.float32).reshape(-1, 2)
+        return Features(
+            px, desc if desc is not None else np.zeros((0, 128), np.float32), self._points(px, frame.depth_m())
+        )
 
 
 def _sift(vo: VisualOdometry) -> None:
     """Swap the ORB extractor and Hamming matcher of ``vo`` for SIFT with an L2 matcher."""
-    sift = cv2.SIFT_create(vo.extractor.config.n_features)
-    extractor = vo.extractor
-
-    def extract(frame) -> Features:
-        kps, desc = sift.detectAndCompute(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY), None)
-        px = np.array([k.pt for k in kps], dtype=np.float32).reshape(-1, 2)
-        return Features(
-            px, desc if desc is not None else np.zeros((0, 128), np.float32), extractor._points(px, frame.depth_m())
-        )
-
-    extractor.extract = extract
+    vo.extractor = SiftExtractor(vo.extractor)
     vo.estimator.matcher = cv2.BFMatcher(cv2.NORM_L2)
 
 
@@ -41,7 +47,7 @@ def measure(dataset: str, frames: int) -> list[list[object]]:
     data = open_dataset(dataset)
     n = min(frames, len(data))
     images = [data.frame(i) for i in range(n)]
-    gt = data.ground_truth.poses[:n]
+    gt = ground_truth_of(data).poses[:n]
     rows = []
     for name, icp, sift in (
         ("ORB + PnP-RANSAC + LM", False, False),

@@ -65,17 +65,23 @@ def simulate(
     rng = np.random.default_rng(seed)
     world = Building.explore(n_poses, n_landmarks, rng, returns)
     graph: Graph = WindowedGraph(settings) if windowed else PoseGraph(settings)
-    graph.timings = []
+    seconds: list[float] = []
+    graph.timings = seconds  # the same list through rolls (each new window appends to it)
     try:
-        result = _build(graph, world, rng, loops_and_landmarks)
+        result = _build(graph, seconds, world, rng, loops_and_landmarks)
     finally:
         if windowed:
             graph.close()
     return result
 
 
-def _build(graph: Graph, world: Building, rng: np.random.Generator, loops_and_landmarks: bool) -> dict:
-    seconds = graph.timings  # the same list through rolls (each new window appends to it)
+def _build(
+    graph: Graph,
+    seconds: list[float],
+    world: Building,
+    rng: np.random.Generator,
+    loops_and_landmarks: bool,
+) -> dict:
     for j in range(len(world.landmarks)):
         graph.add_landmark(j)
     cells: dict[tuple[int, int], list[int]] = defaultdict(list)

@@ -9,13 +9,14 @@ from __future__ import annotations
 
 import tempfile
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
 
 from bench.report import markdown_table, record, show_table
 from rl.plot import plot_reward_curves
 
-VARIANTS = {
+VARIANTS: dict[str, dict[str, Any]] = {  # label -> TrainConfig fields
     "fixed 512": {"batch": "fixed", "n_steps": 64},
     "fixed 2048": {"batch": "fixed", "n_steps": 256},
     "entropy-based (64-256 per actor)": {"batch": "entropy", "b1": 64, "b2": 256},

@@ -24,7 +24,16 @@ import zenoh
 from rich.console import Console
 
 from bench.report import load_note, markdown_table, record, show_table
-from bench.rig import client, free_port, query_status, router, start_serve, stop_serve, wait_for_status
+from bench.rig import (
+    client,
+    free_port,
+    query_status,
+    require_status,
+    router,
+    start_serve,
+    stop_serve,
+    wait_for_status,
+)
 from service.protocol import PREAMBLE, encode_frame, split_message
 from service.replay import frame_publisher
 from sources import open_dataset
@@ -157,14 +166,16 @@ def measure(dataset: str, seconds: float | None, frames: int | None, factor: flo
             pub.put(loop.next())
 
         rate = _calibrate(session, publish, loop)
-        before = query_status(session, STATUS_KEY)
+        before = require_status(session, STATUS_KEY)
         rss_start = rss_mb(serve.pid)[0]
         with Probe(serve.pid, endpoint) as probe:
             start = time.monotonic()
-            if frames is None:
+            if frames is not None:
+                sent = _publish_paced(session, publish, loop, frames)
+            elif seconds is not None:
                 sent = _publish_for(publish, seconds, factor * rate)
             else:
-                sent = _publish_paced(session, publish, loop, frames)
+                raise ValueError("an overload run needs seconds, a memory run frames")
             publish_s = time.monotonic() - start
             status = _settle(session, loop.sent)
             elapsed = time.monotonic() - start
@@ -227,7 +238,7 @@ def _publish_paced(
     session: zenoh.Session, publish: Callable[[], None], loop: FrameLoop, frames: int, window: int = 16
 ) -> int:
     """Publish ``frames`` frames keeping at most ``window`` unaccounted for, so the queue never drops."""
-    accounted = _accounted(query_status(session, STATUS_KEY))
+    accounted = _accounted(require_status(session, STATUS_KEY))
     for _ in range(frames):
         while loop.sent - accounted >= window:
             time.sleep(0.02)

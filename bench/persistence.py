@@ -16,7 +16,6 @@ import numpy as np
 from bench.report import markdown_table, record, show_table
 from service.config import load_settings
 from service.persistence import Persistence
-from service.scheduler import ThreadedRunner
 from slam.build import build_core
 from slam.core import SlamCore
 from slam.snapshot import core_state, restore_core
@@ -67,9 +66,12 @@ def _checkpoint(settings, pipeline: SlamCore, store: Persistence, frames: int) -
         payload = store.capture(keyframes, frames, state)
         t2 = time.perf_counter()
         written = store.save(payload, keyframes, frames, t2 - t0)
+        if written is None:
+            raise RuntimeError(f"could not write a snapshot in {store.store.directory} (the log says why)")
         state_s.append(t1 - t0)
         capture_s.append(t2 - t0)
         write_s.append(written.write_s)
+        size_mb = round(written.size / 1e6, 1)
     for _ in range(max(1, REPEATS // 2)):
         t0 = time.perf_counter()
         snap = next(store.store.candidates([]))[1]
@@ -80,7 +82,7 @@ def _checkpoint(settings, pipeline: SlamCore, store: Persistence, frames: int) -
     same = bool(np.array_equal(restored.trajectory().poses, pipeline.trajectory().poses))
     loops = pipeline.loops.n_accepted if pipeline.loops is not None else 0
     ms = [round(float(np.median(v)) * 1e3, 1) for v in (state_s, capture_s, write_s, load_s, restore_s)]
-    return [keyframes, frames, loops, round(written.size / 1e6, 1), *ms, same]
+    return [keyframes, frames, loops, size_mb, *ms, same]
 
 
 def run_persistence_bench(console, dataset: str, checkpoints: list[int], write: Path | None) -> None:

@@ -27,7 +27,7 @@ def _step(T: np.ndarray | None) -> str:
     return f"{t * 1000:.1f} mm / {np.degrees(r):.2f} deg"
 
 
-def summary_rows(report: ReferenceReport) -> list[list[str]]:
+def summary_rows(report: ReferenceReport) -> list[list[object]]:
     """One row of medians over every checked pair."""
     c = [k for k in report.checks if k.T_depth is not None]
     med = lambda f: float(np.nanmedian([f(k) for k in c])) if c else float("nan")

@@ -6,6 +6,7 @@ import datetime as dt
 import os
 import platform
 import re
+from collections.abc import Sequence
 from pathlib import Path
 
 DEFAULT_FILE = Path("docs/benchmarks.md")
@@ -61,7 +62,7 @@ class StealMeter:
         return 100.0 * (end[1] - self._start[1]) / (end[0] - self._start[0])
 
 
-def show_table(console, title: str, header: list[str], rows: list[list[object]]) -> None:
+def show_table(console, title: str, header: list[str], rows: Sequence[Sequence[object]]) -> None:
     """Print a benchmark table to the terminal (rich)."""
     from rich.table import Table
 
@@ -73,7 +74,7 @@ def show_table(console, title: str, header: list[str], rows: list[list[object]])
     console.print(table)
 
 
-def markdown_table(header: list[str], rows: list[list[object]]) -> str:
+def markdown_table(header: list[str], rows: Sequence[Sequence[object]]) -> str:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
     return "\n".join(lines)

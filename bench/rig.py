@@ -46,6 +46,14 @@ def query_status(session: zenoh.Session, key: str, timeout: float = 2.0) -> dict
     return None
 
 
+def require_status(session: zenoh.Session, key: str, timeout: float = 2.0) -> dict:
+    """The JSON reply on ``key``; RuntimeError when nothing answered within ``timeout``."""
+    status = query_status(session, key, timeout)
+    if status is None:
+        raise RuntimeError(f"no reply on {key} within {timeout:g} s")
+    return status
+
+
 def start_serve(endpoint: str, robot: str, env: dict[str, str] | None = None) -> tuple[subprocess.Popen, Path]:
     """``objslam serve`` as a client of ``endpoint``; its log goes to the returned file."""
     log = Path(tempfile.mkstemp(prefix=f"objslam-serve-{robot}-", suffix=".log")[1])

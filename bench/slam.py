@@ -24,7 +24,7 @@ from bench.report import markdown_table, record, show_table
 from graph.geometry import motion_magnitude, pose_from_tum, relative
 from service.config import load_settings
 from service.run import run_dataset
-from sources import Dataset, ScaledDepth, TruthAsOdometry, WithoutOdometry, open_dataset
+from sources import Dataset, ScaledDepth, TruthAsOdometry, WithoutOdometry, ground_truth_of, open_dataset
 
 REDKITCHEN_WINDOWS = [((146, 193), (636, 669)), ((221, 290), (945, 999))]
 TRUE_LOOP_M, TRUE_LOOP_DEG = 0.3, 20.0
@@ -32,7 +32,7 @@ TRUE_LOOP_M, TRUE_LOOP_DEG = 0.3, 20.0
 
 def is_true_loop(dataset: Dataset, a: int, b: int) -> bool:
     """Ground-truth poses of frames a and b within 0.3 m and 20 degrees."""
-    gt = dataset.ground_truth.poses
+    gt = ground_truth_of(dataset).poses
     t, r = motion_magnitude(relative(gt[a], gt[b]))
     return t <= TRUE_LOOP_M and math.degrees(r) <= TRUE_LOOP_DEG
 
@@ -41,7 +41,7 @@ def geometry_error(dataset: Dataset, r: dict) -> tuple[float, float] | None:
     """Error (m, deg) of a verified candidate's measured relative pose against the ground truth."""
     if "relative_pose" not in r:
         return None
-    gt = dataset.ground_truth.poses
+    gt = ground_truth_of(dataset).poses
     t, a = motion_magnitude(
         relative(relative(gt[r["match_frame"]], gt[r["query_frame"]]), pose_from_tum(np.asarray(r["relative_pose"])))
     )
@@ -81,10 +81,10 @@ def run_one(
     dataset = open_dataset(spec)
     dataset = WithoutOdometry(ScaledDepth(dataset, depth_factor) if depth_factor != 1.0 else dataset)
     summary = run_dataset(dataset, out, _settings(loops, objects), progress=False)
-    loops = json.loads((out / "loops.json").read_text())
+    records = json.loads((out / "loops.json").read_text())
     judged = [
         dict(r, true=is_true_loop(dataset, r["match_frame"], r["query_frame"]), geo=geometry_error(dataset, r))
-        for r in loops
+        for r in records
     ]
     accepted_geo = [r["geo"] for r in judged if r["accepted"]]
     lat = summary["latency"]

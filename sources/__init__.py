@@ -12,6 +12,7 @@ from sources.base import (
     Trajectory,
     TruthAsOdometry,
     WithoutOdometry,
+    ground_truth_of,
     truth_per_frame,
 )
 
@@ -23,6 +24,7 @@ __all__ = [
     "Trajectory",
     "TruthAsOdometry",
     "WithoutOdometry",
+    "ground_truth_of",
     "open_dataset",
     "truth_per_frame",
 ]

@@ -81,6 +81,14 @@ class Dataset(ABC):
         return None
 
 
+def ground_truth_of(dataset: Dataset) -> Trajectory:
+    """The dataset's ground-truth trajectory; DatasetError when it has none (benchmarks need it)."""
+    truth = dataset.ground_truth
+    if truth is None:
+        raise DatasetError(f"{dataset.name}: no ground truth")
+    return truth
+
+
 def truth_per_frame(dataset: Dataset) -> np.ndarray:
     """The ground-truth pose of every frame, (N, 4, 4); DatasetError when a frame has none."""
     truth = dataset.ground_truth
