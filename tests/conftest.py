@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import functools
+import os
 import socket
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +19,7 @@ single_threaded_blas()  # as the objslam command does: tests run the pipeline as
 
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 REDKITCHEN = SHARED_DATA / "7scenes_redkitchen_1000"
+ROOM_POLICY = Path(__file__).resolve().parents[1] / "models" / "lc" / "room_seed3.onnx"
 
 
 def make_frame(t: float = 1.0, seq: int = 0, width: int = 64, height: int = 48, seed: int = 0) -> Frame:
@@ -52,6 +56,30 @@ def router():
     session.close()
 
 
-requires_redkitchen = pytest.mark.skipif(
-    not REDKITCHEN.is_dir(), reason=f"real data not found at {REDKITCHEN} (../shared/data is absent)"
-)
+def in_ci() -> bool:
+    """A CI run: the environment sets ``CI`` (as ``.ci/run`` and the usual CI services do) to anything but
+    empty, 0, false or no."""
+    return os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
+
+
+def requires_data(path: Path, what: str) -> Callable[[Callable], Callable]:
+    """Decorate a test that needs ``path``. Outside CI it is skipped when the path is absent; in CI it always
+    runs and fails, naming what is missing, so that a CI run cannot pass by skipping the real-data tests."""
+
+    def mark(test: Callable) -> Callable:
+        if not in_ci():
+            return pytest.mark.skipif(not path.exists(), reason=f"{what} not found at {path}")(test)
+
+        @functools.wraps(test)  # keeps the test's signature, so its fixtures still reach it
+        def checked(*args, **kwargs):
+            if not path.exists():
+                pytest.fail(f"{what} not found at {path}: a CI run (CI is set) must provide it", pytrace=False)
+            return test(*args, **kwargs)
+
+        return checked
+
+    return mark
+
+
+requires_redkitchen = requires_data(REDKITCHEN, "real data (7-Scenes redkitchen; ../shared/data beside the repo)")
+requires_room_policy = requires_data(ROOM_POLICY, "the shipped room_seed3 policy")

@@ -6,7 +6,6 @@ from __future__ import annotations
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,14 +13,14 @@ import pytest
 from bench.rig import free_port, query_status, router, start_serve, stop_serve, wait_for_status
 from graph.geometry import motion_magnitude, pose_from_tum, relative
 from sources import open_dataset
+from tests.conftest import ROOM_POLICY, requires_room_policy
 
 pytestmark = pytest.mark.integration
-ROOT = Path(__file__).resolve().parents[1]
-POLICY = ROOT / "models" / "lc" / "room_seed3.onnx"
+POLICY = ROOM_POLICY
 SPEC = "synthetic:room?seed=3&frames=300"
 
 
-@pytest.mark.skipif(not POLICY.is_file(), reason="the shipped room_seed3 policy is missing")
+@requires_room_policy
 def test_policy_proposals_become_verified_loop_closures_and_none_is_false():
     port = free_port()
     hub = router(port)

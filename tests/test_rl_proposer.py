@@ -4,7 +4,6 @@ keyframe poses of the synthetic room it was trained for."""
 from __future__ import annotations
 
 from itertools import pairwise
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,11 +12,12 @@ from rl.policy import OnnxPolicy
 from rl.proposer import PolicyProposer
 from service.persistence import decode, encode
 from sources import open_dataset
+from tests.conftest import ROOM_POLICY, requires_room_policy
 
-POLICY = Path(__file__).resolve().parents[1] / "models" / "lc" / "room_seed3.onnx"
+POLICY = ROOM_POLICY
 
 
-@pytest.mark.skipif(not POLICY.is_file(), reason="the shipped room_seed3 policy is missing")
+@requires_room_policy
 def test_loop_closure_actions_hold_for_the_step_and_propose_older_keyframes_nearest_first():
     poses = open_dataset("synthetic:room?seed=3&frames=300").ground_truth.poses[::3]  # the keyframes
     proposer = PolicyProposer(OnnxPolicy(POLICY), radius=1, max_candidates=3)
@@ -46,7 +46,7 @@ def test_loop_closure_actions_hold_for_the_step_and_propose_older_keyframes_near
         assert costs == sorted(costs) and len(p.candidates) <= 3
 
 
-@pytest.mark.skipif(not POLICY.is_file(), reason="the shipped room_seed3 policy is missing")
+@requires_room_policy
 def test_a_proposer_restored_from_a_snapshot_continues_exactly():
     poses = open_dataset("synthetic:room?seed=3&frames=300").ground_truth.poses[::3]
     first, half = PolicyProposer(OnnxPolicy(POLICY)), len(poses) // 2
