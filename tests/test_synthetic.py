@@ -1,8 +1,7 @@
-"""The synthetic RGB-D scene: determinism, geometric consistency of depth / masks / detections, loops, speed."""
+"""The synthetic RGB-D scene: determinism, geometric consistency of depth / masks / detections, loops (its rendering
+speed: ``objslam bench throughput``)."""
 
 from __future__ import annotations
-
-import time
 
 import cv2
 import numpy as np
@@ -143,7 +142,7 @@ def test_detections_match_visible_instances_with_iou_0_7(small: SyntheticDataset
     assert len(fps) >= 3 and {d.label for d in fps} <= set(labels.values())
 
 
-def test_default_scene_has_true_loops_and_renders_under_100_ms(full: SyntheticDataset) -> None:
+def test_default_scene_has_true_loops(full: SyntheticDataset) -> None:
     loops = full.loops
     poses = full.ground_truth.poses
     print(f"loop pairs: {len(loops)}")
@@ -151,13 +150,6 @@ def test_default_scene_has_true_loops_and_renders_under_100_ms(full: SyntheticDa
     for i, j in loops[:: max(1, len(loops) // 50)]:
         t, r = np.linalg.norm(relative(poses[i], poses[j])[:3, 3]), rotation_angle(relative(poses[i], poses[j])[:3, :3])
         assert j - i >= 100 and t <= 0.3 and np.degrees(r) <= 20.0
-    full.frame(0)
-    start = time.perf_counter()
-    for i in range(100, 300, 20):
-        full.frame(i)
-    ms = (time.perf_counter() - start) / 10 * 1000
-    print(f"frame() at 640x480: {ms:.1f} ms")
-    assert ms < 100.0
 
 
 def footprint(o) -> np.ndarray:
