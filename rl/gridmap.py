@@ -74,11 +74,6 @@ class GridMap:
             index[r, c] = loop + 1
         return index
 
-    def cell_action(self, loop: int) -> int:
-        """Eq. 3.19's action for loop-closure location ``loop``: the cell index i * N + j."""
-        r, c = self.loops[loop]
-        return r * self.shape[1] + c
-
     def to_json(self) -> dict:
         rows = ["".join(WALL if w else "." for w in row) for row in self.walls]
         return {

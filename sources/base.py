@@ -55,10 +55,6 @@ class Dataset(ABC):
             yield self.frame(i)
 
     @property
-    def has_odometry(self) -> bool:
-        return False
-
-    @property
     def timestamps(self) -> np.ndarray:
         """Timestamps of all frames, (N,)."""
         return np.array([self.frame(i).timestamp for i in range(len(self))])
@@ -150,10 +146,6 @@ class TruthAsOdometry(DatasetView):
     def __init__(self, inner: Dataset):
         super().__init__(inner)
         self._poses = truth_per_frame(inner)
-
-    @property
-    def has_odometry(self) -> bool:
-        return True
 
     def frame(self, index: int) -> Frame:
         f = self.inner.frame(index)

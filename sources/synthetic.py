@@ -118,11 +118,6 @@ class SyntheticDataset(Dataset):
         return len(self._poses)
 
     @property
-    def has_odometry(self) -> bool:
-        """Frames carry (drifting) odometry."""
-        return True
-
-    @property
     def timestamps(self) -> np.ndarray:
         """Frame times ``i / fps`` in seconds, (N,)."""
         return np.arange(len(self)) / self.fps

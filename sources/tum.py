@@ -84,10 +84,6 @@ class TumDataset(Dataset):
     def timestamps(self) -> np.ndarray:
         return self._times.copy()
 
-    @property
-    def has_odometry(self) -> bool:
-        return self._odometry is not None
-
     def frame(self, index: int) -> Frame:
         if not 0 <= index < len(self):
             raise IndexError(index)

@@ -51,7 +51,7 @@ def test_nearest_timestamps_picks_nearest_within_tolerance():
 def test_tum_directory_with_extensions_loads_frames_odometry_and_detections(tmp_path):
     _write_tum(tmp_path)
     ds = open_dataset(str(tmp_path))
-    assert len(ds) == 5 and ds.has_odometry
+    assert len(ds) == 5 and ds.frame(0).odometry is not None
     f = ds.frame(2)
     assert f.camera.depth_scale == 1000 and f.camera.color.fy == 51 and f.camera.registered
     assert f.rgb.shape == (48, 64, 3) and f.depth.dtype == np.uint16
@@ -79,7 +79,7 @@ def test_views_drop_the_odometry_or_replace_it_with_the_ground_truth(tmp_path):
     )
     ds = open_dataset(str(tmp_path))
     truth, without = TruthAsOdometry(ds), WithoutOdometry(ds)
-    assert truth.has_odometry and not without.has_odometry and len(truth) == len(without) == 5
+    assert len(truth) == len(without) == 5 and all(without.frame(i).odometry is None for i in range(5))
     np.testing.assert_allclose(truth.frame(3).odometry[:3, 3], [0, 1.5, 0])
     assert without.frame(3).odometry is None and without.frame(3).detections[0].label == "cup"
     assert np.array_equal(truth.ground_truth.poses, ds.ground_truth.poses)
@@ -88,7 +88,7 @@ def test_views_drop_the_odometry_or_replace_it_with_the_ground_truth(tmp_path):
 def test_without_camera_json_tum_defaults_and_flags_apply(tmp_path):
     _write_tum(tmp_path, camera=False, odometry=False, detections=False)
     ds = open_dataset(str(tmp_path))
-    assert ds.camera.depth_scale == 5000 and ds.camera.color.fx == 525 and not ds.has_odometry
+    assert ds.camera.depth_scale == 5000 and ds.camera.color.fx == 525
     assert ds.frame(0).detections is None and ds.frame(0).odometry is None
     ds = open_dataset(str(tmp_path), {"depth_scale": 1000.0, "fx": 300.0})
     assert ds.camera.depth_scale == 1000 and ds.camera.color.fx == 300
@@ -125,7 +125,7 @@ def test_missing_and_malformed_directories_give_clear_errors(tmp_path):
 @requires_redkitchen
 def test_7scenes_redkitchen_loads_with_mm_depth_and_unregistered_camera():
     ds = open_dataset(str(REDKITCHEN))
-    assert len(ds) == 1000 and not ds.has_odometry
+    assert len(ds) == 1000 and ds.frame(0).odometry is None
     cam = ds.camera
     assert cam.depth_scale == 1000.0 and not cam.registered
     assert cam.depth.fx == 585 and (cam.depth.cx, cam.depth.cy) == (320, 240)
