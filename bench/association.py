@@ -148,7 +148,8 @@ def ablation_configs(base: NPDAConfig) -> dict[str, NPDAConfig]:
     return out
 
 
-def _pct(x: float) -> str:
+def pct(x: float) -> str:
+    """A fraction as a percentage with one decimal, for the tables."""
     return f"{100 * x:.1f}"
 
 
@@ -263,8 +264,8 @@ def _record_consecutive(console: Console, result: dict, k: int, command: str, wr
             f"synthetic room seed {s}",
             n_pairs[s],
             c.tp + c.fn,
-            _pct(c.precision),
-            _pct(c.recall),
+            pct(c.precision),
+            pct(c.recall),
             "P >= 97, R >= 85",
             TABLE_2_1,
         ]
@@ -276,8 +277,8 @@ def _record_consecutive(console: Console, result: dict, k: int, command: str, wr
             "all",
             sum(n_pairs.values()),
             total.tp + total.fn,
-            _pct(total.precision),
-            _pct(total.recall),
+            pct(total.precision),
+            pct(total.recall),
             "P >= 97, R >= 85",
             TABLE_2_1,
         ]
@@ -339,7 +340,7 @@ def _record_grid(console: Console, variants: dict[str, dict], per_cell: int, com
 
 def _record_ablation(console: Console, ablation: dict[str, Counts], k: int, command: str, write: Path | None) -> None:
     header = ["variant", "precision %", "recall %", "TP", "FP", "FN"]
-    rows = [[name, _pct(c.precision), _pct(c.recall), c.tp, c.fp, c.fn] for name, c in ablation.items()]
+    rows = [[name, pct(c.precision), pct(c.recall), c.tp, c.fp, c.fn] for name, c in ablation.items()]
     show_table(console, "NPDA ablation (consecutive keyframes)", header, rows)
     record(
         "association-ablation",

@@ -18,7 +18,7 @@ import numpy as np
 from rich.console import Console
 
 from bench.report import load_note, markdown_table, record, show_table
-from bench.slam import _short, default_datasets
+from bench.slam import default_datasets, short_name
 from evaluation.object_metrics import MappedObject, match_objects
 from service.config import load_settings
 from service.run import run_dataset
@@ -72,7 +72,7 @@ def run_landmarks_bench(console: Console, datasets: list[str] | None, write: Pat
     results = []
     for spec in datasets or default_datasets():
         for loops, landmarks in VARIANTS:
-            console.print(f"{_short(spec)}: loops {loops}, object landmarks {'on' if landmarks else 'off'}")
+            console.print(f"{short_name(spec)}: loops {loops}, object landmarks {'on' if landmarks else 'off'}")
             results.append(run_variant(spec, loops, landmarks))
     load = os.getloadavg()[0]
 
@@ -95,7 +95,7 @@ def run_landmarks_bench(console: Console, datasets: list[str] | None, write: Pat
     ]
     rows = [
         [
-            _short(r["dataset"]),
+            short_name(r["dataset"]),
             r["loops"],
             "on" if r["landmarks"] else "off",
             f"{r['ate_cm']:.2f}",

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from rich.console import Console
 
-from bench.association import Scene, _pct, keyframe_step, load_scene
+from bench.association import Scene, keyframe_step, load_scene, pct
 from bench.report import markdown_table, record, show_table
 from evaluation.object_metrics import ellipse_box_iou, match_objects
 from perception.clustering import ClusterConfig, Clusterer
@@ -134,9 +134,9 @@ def _objects_row(name: str, r: dict) -> list[object]:
     return [
         name,
         f"{r['found']} / {r['present']}",
-        _pct(r["found"] / max(r["present"], 1)),
+        pct(r["found"] / max(r["present"], 1)),
         r["mapped"],
-        _pct(r["false"] / max(r["mapped"], 1)),
+        pct(r["false"] / max(r["mapped"], 1)),
         f"{r['iou']:.3f}",
         f"{r['median_error_m']:.3f}",
         r["reclusterings"],

@@ -152,7 +152,8 @@ def run_slam_bench(console: Console, datasets: list[str] | None, write: Path | N
     return results
 
 
-def _short(spec: str) -> str:
+def short_name(spec: str) -> str:
+    """A dataset as the tables name it: the directory name, or the whole synthetic spec."""
     return Path(spec).name if not spec.startswith("synthetic:") else spec
 
 
@@ -174,7 +175,7 @@ def _record_odometry(console: Console, results: list[dict], write: Path | None) 
     ]
     rows = [
         [
-            _short(r["dataset"]),
+            short_name(r["dataset"]),
             r["frames"],
             r["keyframes"],
             f"{r['ate_odometry_cm']:.2f}",
@@ -228,7 +229,7 @@ def _record_loops(console: Console, results: list[dict], write: Path | None) -> 
     ]
     rows = [
         [
-            _short(r["dataset"]),
+            short_name(r["dataset"]),
             r["candidates"],
             r["true"],
             r["accepted"],
