@@ -20,8 +20,8 @@ install: $(STAMP)
 run: $(STAMP)
 	$(BIN)/objslam run "synthetic:room?seed=0&frames=300" --out out/run
 
-## test: the whole test suite
-test: $(STAMP)
+## test: lint, format and types first (CI fails on a violation), then the whole test suite
+test: lint
 	$(BIN)/python -m pytest -q
 
 ## lint: ruff (lint, then the format check) and mypy over the packages in pyproject.toml
