@@ -168,13 +168,13 @@ class Detector:
         # (on the loaded 2-core machine this halved CPU per frame with 2 threads).
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
         self._path, self._options = path, opts
-        self._session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-        self._input = self._session.get_inputs()[0]
-        outputs = [o.name for o in self._session.get_outputs()]
+        self.session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+        self._input = self.session.get_inputs()[0]
+        outputs = [o.name for o in self.session.get_outputs()]
         # CenterNet: only its decoded detections are needed (not the heatmap and size maps).
         self._outputs = ["tower_0/detections"] if "tower_0/detections" in outputs else None
         self.input_size = self._input_size()
-        self._sessions = {self.input_size: self._session}  # CenterNet by input height
+        self._sessions = {self.input_size: self.session}  # CenterNet by input height
         self.class_names = self._class_names()
         self._thresholds = self._threshold_vector()
         self.last_ms = 0.0
@@ -198,7 +198,7 @@ class Detector:
         if self.config.class_names:
             return tuple(self.config.class_names)
         if self.config.kind == "yolo":
-            return _metadata_names(self._session) or COCO_CLASSES
+            return _metadata_names(self.session) or COCO_CLASSES
         return COCO_CLASSES
 
     def _threshold_vector(self) -> np.ndarray:
@@ -212,7 +212,7 @@ class Detector:
             thr[[n not in self.config.classes for n in self.class_names]] = np.inf
         return thr
 
-    def _preprocess(self, rgb: np.ndarray) -> tuple[np.ndarray, InputTransform]:
+    def preprocess(self, rgb: np.ndarray) -> tuple[np.ndarray, InputTransform]:
         """The network input tensor for ``rgb`` and the image -> input mapping."""
         size, kind = self.input_size, self.config.kind
         if kind == "centernet":  # NHWC RGB 0..255, letterbox with zeros
@@ -241,9 +241,9 @@ class Detector:
                     fitted,
                     exc,
                 )
-                self._sessions[fitted] = self._session
+                self._sessions[fitted] = self.session
         session = self._sessions[fitted]
-        return fitted if session is not self._session else self.input_size
+        return fitted if session is not self.session else self.input_size
 
     def _decode(self, outputs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         if self.config.kind == "centernet":
@@ -254,9 +254,9 @@ class Detector:
 
     def infer(self, rgb: np.ndarray) -> tuple[list[np.ndarray], InputTransform]:
         """Raw network outputs for an RGB image, and the image -> network-input mapping."""
-        tensor, transform = self._preprocess(np.ascontiguousarray(rgb))
+        tensor, transform = self.preprocess(np.ascontiguousarray(rgb))
         session = (
-            self._sessions.get(tensor.shape[1], self._session) if self.config.kind == "centernet" else self._session
+            self._sessions.get(tensor.shape[1], self.session) if self.config.kind == "centernet" else self.session
         )
         return session.run(self._outputs, {self._input.name: tensor}), transform
 

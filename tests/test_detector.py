@@ -205,7 +205,7 @@ def test_yolo_pipeline_reads_names_letterboxes_with_grey_and_maps_boxes_back(mon
     detector = Detector(DetectorSettings(model=Path("fake.onnx"), kind="yolo"))
     assert detector.input_size == 320 and detector.class_names == ("robot", "mug")
     dets = detector.detect(np.zeros((240, 320, 3), np.uint8))  # scale 1, 40 grey rows above and below
-    fed = detector._session.fed
+    fed = detector.session.fed
     assert fed.shape == (1, 3, 320, 320) and fed[0, 0, 0, 0] == pytest.approx(114 / 255) and fed[0, 0, 100, 0] == 0
     assert [(d.label, round(d.score, 2)) for d in dets] == [("mug", 0.8), ("robot", 0.6)]
     np.testing.assert_allclose([dets[0].box, dets[1].box], [[120, 100, 200, 140], [30, 120, 50, 140]])
@@ -280,8 +280,8 @@ def test_letterbox_into_a_wide_canvas_centres_and_inverts():
 def test_centernet_on_a_4_3_image_runs_512_x_384_and_finds_what_the_square_input_finds(centernet):
     image = data.astronaut()[64:448]  # 512 x 384
     fit = Detector(DetectorSettings(kind="centernet", fit_aspect=True))
-    assert fit._preprocess(image)[0].shape == (1, 384, 512, 3)
-    assert centernet._preprocess(image)[0].shape == (1, 512, 512, 3)
+    assert fit.preprocess(image)[0].shape == (1, 384, 512, 3)
+    assert centernet.preprocess(image)[0].shape == (1, 512, 512, 3)
     fitted, full = fit.detect(image), centernet.detect(image)
     assert fitted and fitted[0].label == full[0].label == "person"
     assert iou(fitted[0].box, full[0].box) >= 0.9 and abs(fitted[0].score - full[0].score) < 0.05
