@@ -1,4 +1,5 @@
-"""Mapped objects against ground-truth boxes: one-to-one matching, ground-plane IoU and centroid error.
+"""Mapped objects against ground-truth boxes: one-to-one matching, ground-plane IoU, centroid error and its
+direction (in the world, and in the frames of the cameras that saw the object).
 
 Used by ``objslam bench objects`` / ``bench landmarks`` and by ``objslam eval`` (pure computation).
 """
@@ -11,23 +12,30 @@ from typing import Any
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from perception.camera import Intrinsics, points_to_pixels
 from sources.base import ObjectTruth
 
 
 @dataclass(frozen=True)
 class MappedObject:
-    """A mapped object as matching needs it: label, centre and (for the IoU) covariance."""
+    """A mapped object as matching needs it: label, centre, (for the IoU) covariance and its map id."""
 
     label: str
     mean: np.ndarray
     cov: np.ndarray | None = None
+    id: int = -1
 
 
 def aligned_objects(entries: list[dict[str, Any]], T: np.ndarray) -> list[MappedObject]:
     """``objects.json`` entries moved by the rigid transform ``T`` (e.g. the trajectory's ATE alignment)."""
     R, t = T[:3, :3], T[:3, 3]
     return [
-        MappedObject(e["label"], R @ np.asarray(e["mean"], float) + t, R @ np.asarray(e["cov"], float) @ R.T)
+        MappedObject(
+            e["label"],
+            R @ np.asarray(e["mean"], float) + t,
+            R @ np.asarray(e["cov"], float) @ R.T,
+            int(e.get("id", -1)),
+        )
         for e in entries
     ]
 
@@ -81,4 +89,65 @@ def object_scores(objects: list, truth: list[ObjectTruth], axis_scale: float) ->
         "mean_iou": float(np.mean(ious)) if ious else None,
         "median_centroid_error_m": float(np.median(errors)) if errors else None,
         "axis_scale": axis_scale,
+    }
+
+
+def viewing_poses(
+    center: np.ndarray, poses: np.ndarray, K: Intrinsics, width: int, height: int, max_range_m: float = 5.0
+) -> np.ndarray:
+    """Indices of the camera-to-world ``poses`` (N, 4, 4) whose image holds the point ``center``: in front of the
+    camera, within ``max_range_m`` and inside the frame (occlusion is not tested); the nearest pose alone when
+    none does."""
+    cam = np.einsum("nji,nj->ni", poses[:, :3, :3], center - poses[:, :3, 3])  # R^T (c - t)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = points_to_pixels(cam, K)
+    seen = (cam[:, 2] > 0.05) & (np.linalg.norm(cam, axis=1) <= max_range_m)
+    seen &= (u >= -0.5) & (u < width - 0.5) & (v >= -0.5) & (v < height - 0.5)
+    if seen.any():
+        return np.flatnonzero(seen)
+    return np.array([int(np.argmin(np.linalg.norm(cam, axis=1)))])
+
+
+def error_vectors(
+    objects: list, truth: list[ObjectTruth], poses: np.ndarray, K: Intrinsics, width: int, height: int
+) -> list[dict[str, Any]]:
+    """Per one-to-one match (``match_objects``): the centroid error ``mapped - true`` in the world (``world_m``)
+    and, averaged over the camera poses that see the true centre (``viewing_poses``; the nearest pose when none
+    does), in their camera frames (``camera_m``: x right, y down, z forward) and split at each view's ray to the
+    true centre: ``along_ray_m`` (negative: towards the camera) and ``across_ray_m`` (the mean of the error's
+    part across the ray, its length). ``poses`` are camera-to-world in the frame of ``truth``."""
+    out = []
+    for a, b in match_objects(objects, truth):
+        centre = np.asarray(truth[b].center, float)
+        e = np.asarray(objects[a].mean, float) - centre
+        views = poses[viewing_poses(centre, poses, K, width, height)]
+        rays = centre - views[:, :3, 3]
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        along = rays @ e
+        across = e[None, :] - along[:, None] * rays
+        out.append(
+            {
+                "truth_id": int(truth[b].id),
+                "id": int(getattr(objects[a], "id", -1)),
+                "label": truth[b].label,
+                "error_m": float(np.linalg.norm(e)),
+                "world_m": [float(x) for x in e],
+                "camera_m": [float(x) for x in np.einsum("nji,j->ni", views[:, :3, :3], e).mean(axis=0)],
+                "along_ray_m": float(along.mean()),
+                "across_ray_m": float(np.linalg.norm(across.mean(axis=0))),
+                "views": len(views),
+            }
+        )
+    return out
+
+
+def error_summary(errors: list[dict[str, Any]]) -> dict[str, Any]:
+    """The common part of per-object error vectors: their mean world vector and camera-frame vector, and the
+    median error along the viewing ray (negative: towards the camera)."""
+    if not errors:
+        return {"mean_world_error_m": None, "mean_camera_error_m": None, "median_along_ray_m": None}
+    return {
+        "mean_world_error_m": [float(x) for x in np.mean([e["world_m"] for e in errors], axis=0)],
+        "mean_camera_error_m": [float(x) for x in np.mean([e["camera_m"] for e in errors], axis=0)],
+        "median_along_ray_m": float(np.median([e["along_ray_m"] for e in errors])),
     }

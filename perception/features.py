@@ -11,7 +11,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import distance_transform_edt
+from scipy.ndimage import distance_transform_edt, uniform_filter
 
 from perception.camera import Intrinsics, pixels_to_points
 
@@ -45,6 +45,11 @@ class FeatureConfig:
     """Amodal completion of a view (``complete_amodal``): the object's centre lies this many horizontal
     standard deviations behind its near side (sqrt(3): half the width of a uniform extent, as for a box seen
     face on); None uses the visible points as they are. `objslam bench objects` measures both."""
+    near_radius: int = 2
+    """The near and far sides of a view (``complete_amodal``) are measured on its depth averaged over each object
+    pixel's object neighbours within this many grid steps (``local_mean_depth``), so that the sensor's noise does
+    not pull the near side, a 10th percentile, towards the camera (by about 1.3 sigma: a cup 3.5 m away seen
+    through twice the Kinect model's noise landed 3.6 cm towards the camera); 0 measures them on the raw depth."""
 
 
 @dataclass(frozen=True)
@@ -169,7 +174,13 @@ def cut_by_border(box: Box, width: int, height: int) -> tuple[bool, bool]:
 
 
 def complete_amodal(
-    points: np.ndarray, label: str, track_id: int, shift: float, room: float = np.inf, cut_sideways: bool = False
+    points: np.ndarray,
+    label: str,
+    track_id: int,
+    shift: float,
+    room: float = np.inf,
+    cut_sideways: bool = False,
+    reference: np.ndarray | None = None,
 ) -> FeatureVector | None:
     """A camera-frame view's feature vector completed behind its visible surface.
 
@@ -184,12 +195,15 @@ def complete_amodal(
     ``cut_sideways``: the image border cuts the box on the left or right, so the points' horizontal spread
     understates the object's width; the depth prior then takes the larger of the horizontal and vertical
     spreads (still bounded by the surface's reach plus the free depth behind it).
+
+    ``reference``: the same points (same order) with less depth noise, whose spread along the ray gives the near
+    and far sides (``detection_feature`` passes them with locally averaged depth); default ``points``.
     """
     f = feature_from_points(points, label, track_id)
     if f is None:
         return None
     ray = f.mean / np.linalg.norm(f.mean)
-    along = points @ ray
+    along = (points if reference is None else reference) @ ray
     near, far = np.percentile(along, [10, 90])
     sx = float(np.sqrt(f.cov[0, 0] if not cut_sideways else max(f.cov[0, 0], f.cov[1, 1])))
     depth = min(np.sqrt(12.0) * sx, float(far - near) + room)
@@ -198,6 +212,22 @@ def complete_amodal(
     mean = P @ f.mean + centre * ray
     cov = P @ f.cov @ P + depth**2 / 12.0 * np.outer(ray, ray)
     return FeatureVector(mean, cov, f.n, label, track_id, f.sources)
+
+
+def local_mean_depth(depth_m: np.ndarray, rows: np.ndarray, cols: np.ndarray, radius: int) -> np.ndarray:
+    """Depth (N, float64) at each of the pixels (rows, cols) averaged over those of them within ``radius`` steps
+    of their grid (a box's pixels lie on a regular grid, ``box_pixels``): inside a surface (2r+1)^2 pixels, so
+    the noise's standard deviation is 2r+1 times smaller; fewer at its rim. ``radius`` 0: the depth itself."""
+    z = depth_m[rows, cols].astype(np.float64)
+    if radius <= 0 or len(rows) < 2:
+        return z
+    r0, c0 = int(rows.min()), int(cols.min())
+    step = int(np.gcd.reduce(np.r_[rows - r0, cols - c0])) or 1
+    gr, gc = (rows - r0) // step, (cols - c0) // step
+    total, count = np.zeros((2, int(gr.max()) + 1, int(gc.max()) + 1))
+    total[gr, gc], count[gr, gc] = z, 1.0
+    size = 2 * radius + 1  # the filters' common normalisation cancels in the ratio
+    return uniform_filter(total, size, mode="constant")[gr, gc] / uniform_filter(count, size, mode="constant")[gr, gc]
 
 
 def depth_points(depth_m: np.ndarray, K: Intrinsics, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
@@ -313,13 +343,14 @@ def backproject_detection(
 def detection_feature(
     depth_m: np.ndarray, K: Intrinsics, box: Box, label: str, track_id: int, config: FeatureConfig
 ) -> FeatureVector | None:
-    """The camera-frame feature vector of a detection (amodally completed when configured); None when too few
-    points."""
+    """The camera-frame feature vector of a detection (amodally completed when configured, its near and far sides
+    on locally averaged depth: ``FeatureConfig.near_radius``); None when too few points."""
     rows, cols = object_points(depth_m, K, box, config)
     idx = stride_subsample(len(rows), config.max_points)
     points = depth_points(depth_m, K, rows[idx], cols[idx])
     if config.amodal is None or len(points) < 3:
         return feature_from_points(points, label, track_id)
+    smooth = local_mean_depth(depth_m, rows, cols, config.near_radius)[idx]
     return complete_amodal(
         points,
         label,
@@ -327,6 +358,7 @@ def detection_feature(
         config.amodal,
         room_behind(depth_m, box, rows, cols),
         cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0],
+        reference=pixels_to_points(cols[idx], rows[idx], smooth, K),
     )
 
 

@@ -3,8 +3,10 @@
 Trajectory error (ATE / RPE after SE(3) alignment) of ``trajectory.tum`` and ``odometry.tum``; where the
 dataset has ground-truth objects (``objects_gt.json``, the synthetic scenes), the mapped objects of
 ``objects.json`` moved by the trajectory's alignment, matched one-to-one to them (mapped / matched / false,
-ground-plane IoU, centroid error). Association metrics need per-frame instance masks and the service's
-per-frame associations, which a run directory does not hold: ``bench association`` measures them.
+ground-plane IoU, centroid error), and each matched object's error vector in the world and in the frames of
+the ground-truth cameras that see it (along and across their rays), so a common offset shows at a glance.
+Association metrics need per-frame instance masks and the service's per-frame associations, which a run
+directory does not hold: ``bench association`` measures them.
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from evaluation.object_metrics import aligned_objects, object_scores
+from evaluation.object_metrics import aligned_objects, error_summary, error_vectors, object_scores
 from evaluation.trajectory_metrics import error_dict, evaluate
 from graph.trajectory import match_timestamps
 from perception.clustering import ClusterConfig
@@ -49,7 +51,13 @@ def evaluate_run(run_dir: Path, gt_spec: str) -> str:
     truth, objects_file = data.objects, run_dir / "objects.json"
     if truth and objects_file.is_file() and "trajectory" in errors:
         mapped = aligned_objects(json.loads(objects_file.read_text()), errors["trajectory"].alignment)
-        result["objects"] = object_scores(mapped, truth, ClusterConfig().axis_scale)
+        camera = data.camera
+        per_object = error_vectors(mapped, truth, gt.poses, camera.color, camera.width, camera.height)
+        result["objects"] = {
+            **object_scores(mapped, truth, ClusterConfig().axis_scale),
+            **error_summary(per_object),
+            "per_object": per_object,
+        }
     section = evaluation_markdown(result)
     report = run_dir / "report.md"
     atomic_write(report, with_section(report.read_text() if report.is_file() else None, section))
@@ -88,9 +96,39 @@ def evaluation_markdown(result: dict[str, Any]) -> str:
             f"Objects in the trajectory's ATE alignment; a mapped object matches a true one of its label when "
             f"its centre lies inside the true box grown by 0.25 m (one-to-one); IoU of the ellipse at "
             f"{objects['axis_scale']:g} std with the true box footprint.",
+            *error_table(objects),
         ]
     lines += ["", "Per-frame position error: `eval.png`; figures: `metrics.json`."]
     return "\n".join(lines) + "\n"
+
+
+def _vector(values: list[float] | None) -> str:
+    return "-" if values is None else ", ".join(f"{v:+.3f}" for v in values)
+
+
+def error_table(objects: dict[str, Any]) -> list[str]:
+    """Report lines: each matched object's error vector (mapped - true centre), and their common part."""
+    rows = sorted(objects.get("per_object", []), key=lambda e: e["truth_id"])
+    if not rows:
+        return []
+    along = objects["median_along_ray_m"]
+    return [
+        "",
+        "| true id | label | error (m) | world dx, dy, dz (m) | camera right, down, forward (m) | along ray (m) | "
+        "across ray (m) | views |",
+        "|---|---|---|---|---|---|---|---|",
+        *(
+            f"| {e['truth_id']} | {e['label']} | {e['error_m']:.3f} | {_vector(e['world_m'])} | "
+            f"{_vector(e['camera_m'])} | {e['along_ray_m']:+.3f} | {e['across_ray_m']:.3f} | {e['views']} |"
+            for e in rows
+        ),
+        f"| all | | | mean {_vector(objects['mean_world_error_m'])} | mean {_vector(objects['mean_camera_error_m'])} "
+        f"| median {along:+.3f} | | |",
+        "",
+        "Error = mapped minus true centre. Camera frame and rays: averaged over the ground-truth camera poses "
+        "whose image holds the true centre (within 5 m, occlusion not tested; else the nearest pose); along the "
+        "ray < 0 is towards the camera.",
+    ]
 
 
 def with_section(report: str | None, section: str) -> str:
