@@ -151,10 +151,20 @@ def cluster_labels(features: Sequence[FeatureVector], config: ClusterConfig) -> 
     return out
 
 
-def merge_overlapping(clusters: list[list[FeatureVector]], config: ClusterConfig) -> list[list[FeatureVector]]:
-    """Union same-class clusters whose pooled Gaussians are within ``merge_distance`` (SPEC 6.8 merges)."""
+def merge_overlapping(
+    clusters: list[list[FeatureVector]],
+    config: ClusterConfig,
+    covisible: frozenset[tuple[int, int]] | set[tuple[int, int]] = frozenset(),
+) -> list[list[FeatureVector]]:
+    """Union same-class clusters whose pooled Gaussians are within ``merge_distance`` (SPEC 6.8 merges): partial
+    views of one object. Never two clusters holding tracks that were detected side by side in one keyframe
+    (``covisible`` pairs of track ids, smaller first): those are two objects, however close (a row of chairs)."""
     pooled = [merge_features(c) for c in clusters]
     parent = list(range(len(clusters)))
+    tracks = [{f.track_id for f in c} for c in clusters]  # by root: the tracks of its merged group
+
+    def apart(a: set[int], b: set[int]) -> bool:
+        return any((min(x, y), max(x, y)) in covisible for x in a for y in b)
 
     def root(i: int) -> int:
         while parent[i] != i:
@@ -171,7 +181,10 @@ def merge_overlapping(clusters: list[list[FeatureVector]], config: ClusterConfig
                 )
                 <= config.merge_distance
             ):
-                parent[root(j)] = root(i)
+                ri, rj = root(i), root(j)
+                if ri != rj and not apart(tracks[ri], tracks[rj]):
+                    parent[rj] = ri
+                    tracks[ri] |= tracks[rj]
     groups: dict[int, list[FeatureVector]] = {}
     for i, c in enumerate(clusters):
         groups.setdefault(root(i), []).extend(c)
@@ -248,6 +261,7 @@ class Clusterer:
         self.features: list[FeatureVector] = []
         self.objects: list[ObjectEllipsoid] = []
         self.reclusterings = 0
+        self.covisible: set[tuple[int, int]] = set()  # same-class track pairs detected in one keyframe
         self._fit = self._out = self._new = 0
         self._next_id = 1
 
@@ -259,11 +273,20 @@ class Clusterer:
             "reclusterings": self.reclusterings,
             "counts": (self._fit, self._out, self._new),
             "next_id": self._next_id,
+            "covisible": self.covisible,
         }
 
     def restore(self, state: dict) -> None:
         self.features, self.objects, self.reclusterings = state["features"], state["objects"], state["reclusterings"]
         (self._fit, self._out, self._new), self._next_id = state["counts"], state["next_id"]
+        self.covisible = set(state.get("covisible", ()))  # snapshots of 0.1.0 have none
+
+    def note_covisible(self, detected: Sequence[tuple[str, int]]) -> None:
+        """Record the (label, track id) detections of one keyframe: same-class tracks seen side by side."""
+        for i, (label_a, a) in enumerate(detected):
+            for label_b, b in detected[i + 1 :]:
+                if label_a == label_b and a != b:
+                    self.covisible.add((min(a, b), max(a, b)))
 
     def add(self, features: Sequence[FeatureVector | None]) -> None:
         """Store new feature vectors for the next clustering."""
@@ -303,7 +326,8 @@ class Clusterer:
             [f for f, c in zip(self.features, labels, strict=True) if c == k]
             for k in range(int(labels.max(initial=-1)) + 1)
         ]
-        clusters = merge_overlapping(clusters, self.config) if self.config.merge_distance > 0 else clusters
+        if self.config.merge_distance > 0:
+            clusters = merge_overlapping(clusters, self.config, self.covisible)
         self.objects = self._carry_ids(sorted(clusters, key=len, reverse=True))
         self.reclusterings += 1
         self._fit = self._out = self._new = 0

@@ -96,6 +96,9 @@ class ObjectMapper:
             if f is not None and inside
         ]
         pooled = [self.tracker.observe(t, f) for t, f in zip(ids, obs, strict=True)]
+        self.clusterer.note_covisible(
+            [(d.label, t) for d, t, f in zip(detections, ids, obs, strict=True) if f is not None]
+        )
         self.clusterer.add([*pooled, *self.tracker.close_stale(index)])
         self._prev = _Keyframe(detections, depth_m, pose, index)
         return self.clusterer.step(obs, [self.tracker.associated(t) for t in ids])

@@ -12,6 +12,7 @@ from perception.clustering import (
     bhattacharyya_matrix,
     cluster_labels,
     ellipsoid,
+    merge_overlapping,
     merge_track_runs,
 )
 from perception.features import FeatureVector, merge_features
@@ -113,3 +114,32 @@ def test_object_ids_persist_across_reclustering() -> None:
     second = {o.label: o.id for o in cl.recluster()}
     assert second["chair"] == first["chair"] and second["tv"] == first["tv"]
     assert second["cup"] not in first.values()
+
+
+def _chair(x: float, track: int) -> FeatureVector:
+    return FeatureVector(np.array([x, 0.0, 0.45]), np.diag([0.04, 0.04, 0.04]), 50, "chair", track)
+
+
+def test_partial_views_merge_but_same_class_objects_seen_side_by_side_stay_apart() -> None:
+    config = ClusterConfig()
+    left, right = [_chair(0.0, 1), _chair(0.02, 1)], [_chair(0.65, 2), _chair(0.67, 2)]  # a row: 0.65 m apart
+    a, b = merge_features(left), merge_features(right)
+    assert bhattacharyya(a.mean, a.var, b.mean, b.var) <= config.merge_distance  # close enough to look like one
+    assert len(merge_overlapping([left, right], config)) == 1  # two views of one chair, never seen together
+    assert len(merge_overlapping([left, right], config, {(1, 2)})) == 2  # both detected in one keyframe
+    third = [_chair(0.3, 3)]  # a view between them may join one of them, never both
+    groups = merge_overlapping([left, right, third], config, {(1, 2)})
+    assert len(groups) == 2 and all({f.track_id for f in g} != {1, 2, 3} for g in groups)
+
+
+def test_the_clusterer_records_same_class_tracks_detected_in_one_keyframe() -> None:
+    c = Clusterer()
+    c.note_covisible([("chair", 5), ("cup", 2), ("chair", 3), ("chair", 5)])
+    assert c.covisible == {(3, 5)}
+    restored = Clusterer()
+    restored.restore(c.state())
+    assert restored.covisible == {(3, 5)}
+    old = c.state()
+    del old["covisible"]  # a snapshot of release 0.1.0
+    restored.restore(old)
+    assert restored.covisible == set()
