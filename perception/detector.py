@@ -255,9 +255,7 @@ class Detector:
     def infer(self, rgb: np.ndarray) -> tuple[list[np.ndarray], InputTransform]:
         """Raw network outputs for an RGB image, and the image -> network-input mapping."""
         tensor, transform = self.preprocess(np.ascontiguousarray(rgb))
-        session = (
-            self._sessions.get(tensor.shape[1], self.session) if self.config.kind == "centernet" else self.session
-        )
+        session = self._sessions.get(tensor.shape[1], self.session) if self.config.kind == "centernet" else self.session
         return session.run(self._outputs, {self._input.name: tensor}), transform
 
     def detect(self, rgb: np.ndarray) -> list[Detection]:
