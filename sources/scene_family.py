@@ -44,6 +44,7 @@ from sources.scene import _footprint, _inside, _min_distance, _overlap
 HELD_OUT_SEEDS: tuple[int, ...] = tuple(range(1000, 1020))  # benchmark scenes: never tune on these
 DEVELOPMENT_SEEDS: tuple[int, ...] = tuple(range(8))  # for tuning and for looking at failures
 SPACING_BUCKETS_M: tuple[float, ...] = (0.3, 0.5, 0.7, 1.0)
+_BUCKET_WEIGHTS = (0.35, 0.3, 0.2, 0.15)  # the order buckets are tried in: close spacings first, more often
 ROW_LABELS: tuple[str, ...] = ("chair", "cup", "bottle", "book")
 CLEARANCE_M = 0.6  # minimum horizontal distance from every camera position to every object footprint
 SMALL_M, LARGE_M = 0.10, 1.0  # size classes by the longest side of the footprint
@@ -150,9 +151,10 @@ class _Placer:
         self.supports: list[int] = []  # index of the supporting object, -1 floor or wall
         self.rows: list[Row] = []
 
-    def size(self, kind: str, scale: float = 1.0) -> tuple[float, float, float]:
+    def size(self, kind: str) -> tuple[float, float, float]:
+        """A random size of ``kind`` (round things: as deep as wide)."""
         lo, hi = _SIZES[kind]
-        s = self.rng.uniform(lo, hi) * scale
+        s = self.rng.uniform(lo, hi)
         if kind in _ROUND:
             s[1] = s[0]
         return float(s[0]), float(s[1]), float(s[2])
@@ -284,14 +286,15 @@ class _Placer:
         if kind in ("table", "desk"):
             if kind == "table":
                 self.chairs_along(k)
-            self.clutter(k, 1 if kind == "desk" else int(self.rng.integers(1, 3)))
+            self.clutter(k, 1 if kind == "desk" or self.rng.random() < 0.25 else 2)
         elif kind in ("couch", "bed") and self.rng.random() < 0.6:
             self.on_top(k, str(self.rng.choice(["teddy bear", "book"])))
 
 
 def _pick_spacing(rng: np.random.Generator, extent: float, length: float) -> tuple[int, float] | None:
     """(count 2-5, spacing) of a row of objects ``extent`` long along it in ``length`` m, or None."""
-    for bucket in rng.permutation(SPACING_BUCKETS_M):
+    order = rng.choice(len(SPACING_BUCKETS_M), len(SPACING_BUCKETS_M), replace=False, p=_BUCKET_WEIGHTS)
+    for bucket in np.asarray(SPACING_BUCKETS_M)[order]:
         if bucket - 0.02 < extent + 0.015:
             continue
         s = float(np.clip(bucket + rng.uniform(-0.02, 0.02), SPACING_BUCKETS_M[0], SPACING_BUCKETS_M[-1]))
