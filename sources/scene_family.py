@@ -7,7 +7,9 @@ and objects rejection-sampled at least ``CLEARANCE_M`` from the path, on the wal
 
 - along the walls: couches, refrigerators, beds (rooms over 6 m), desks with clutter, rows of chairs, tvs and
   clocks on the wall, plants, suitcases; free-standing: dining tables with rows of chairs along their sides,
-  rows of chairs, plants, suitcases, couches; teddy bears and books on couches and beds;
+  rows of chairs, plants, suitcases, couches (more of them for inward laps, which see little else within
+  the depth range: the far walls of a large room are 4-7 m away); teddy bears and books on couches and beds;
+  nothing where the path never looks (inside outward laps, behind a sweep);
 - rows of 2-5 same-class objects (``ROW_LABELS``: chairs on the floor, cups, bottles and books on tables) whose
   centre-to-centre spacing is one of ``SPACING_BUCKETS_M`` +- 2 cm (0.3-1.0 m; a bucket is used when the
   objects fit with a gap), recorded in ``FamilyLayout.rows``;
@@ -33,12 +35,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 
 from sources.base import ObjectTruth
 from sources.family_paths import PATH_KINDS, PathPlan, path_points, path_poses, plan_path
-from sources.raycast import TEXELS_PER_M, Surface, box_surfaces, object_texture, room_surfaces, surface_texture
 from sources.scene import _footprint, _inside, _min_distance, _overlap
 
 HELD_OUT_SEEDS: tuple[int, ...] = tuple(range(1000, 1020))  # benchmark scenes: never tune on these
@@ -80,19 +80,6 @@ _ROUND = {"cup", "bottle", "wine glass", "bowl", "vase", "apple", "orange", "pot
 _TABLE_ITEMS = ("laptop", "keyboard", "mouse", "bowl", "vase", "wine glass", "apple", "orange", "cup", "bottle", "book")
 _WALL_KINDS = ("couch", "refrigerator", "desk", "chair", "tv", "clock", "potted plant", "suitcase", "bed")
 _WALL_WEIGHTS = (0.14, 0.1, 0.18, 0.16, 0.1, 0.08, 0.1, 0.06, 0.08)
-EXTRA_COLOURS: dict[str, tuple[int, int, int]] = {
-    "bed": (170, 140, 120),
-    "clock": (230, 230, 210),
-    "suitcase": (90, 60, 40),
-    "teddy bear": (160, 110, 60),
-    "wine glass": (190, 200, 210),
-    "keyboard": (35, 35, 40),
-    "mouse": (90, 90, 95),
-    "bowl": (210, 200, 170),
-    "vase": (80, 110, 180),
-    "apple": (190, 40, 40),
-    "orange": (240, 150, 30),
-}
 
 
 def size_class(obj: ObjectTruth) -> str:
@@ -362,6 +349,8 @@ def make_layout(seed: int) -> FamilyLayout:
         free = ["table"] * (1 + int(area > 45 and p.rng.random() < 0.5)) + ["chair"] * int(p.rng.random() < 0.6)
         free += ["potted plant"] * int(p.rng.integers(0, 3)) + ["suitcase"] * int(p.rng.random() < 0.3)
         free += ["couch"] * int(area > 30 and p.rng.random() < 0.3)
+        if plan.kind == "inward":  # what inward laps see within depth range is the middle of the room
+            free += ["table", "chair", "potted plant"]
         for kind in free:
             p.free_item(kind)
         if _complete(p):
@@ -373,29 +362,3 @@ def make_layout(seed: int) -> FamilyLayout:
 def family_poses(layout: FamilyLayout, frames: int, fps: float, cycles: float) -> np.ndarray:
     """True camera-to-world poses (frames, 4, 4) along the layout's path: ``cycles`` laps / trips / sweep cycles."""
     return path_poses(layout.path, frames, fps, cycles, layout.seed)
-
-
-def plain_texture(rng: np.random.Generator, width_m: float, height_m: float) -> np.ndarray:
-    """A texture-poor painted wall (h, w, 3) uint8: one colour with faint metre-scale variation."""
-    w, h = int(np.ceil(width_m * TEXELS_PER_M)) + 1, int(np.ceil(height_m * TEXELS_PER_M)) + 1
-    base = rng.uniform(150.0, 215.0) + rng.normal(0.0, 8.0, 3)
-    low = cv2.resize(rng.normal(0.0, 3.0, (h // 100 + 2, w // 100 + 2, 3)), (w, h), interpolation=cv2.INTER_CUBIC)
-    return np.clip(base + low, 0, 255).astype(np.uint8)
-
-
-def family_surfaces(layout: FamilyLayout, colours: dict[str, tuple[int, int, int]]) -> list[Surface]:
-    """Lit room faces (walls plain when ``plain_walls``) and the faces of every object (``colours`` by label)."""
-    light, seed = np.asarray(layout.light), layout.seed
-
-    def texture(k: int, width_m: float, height_m: float) -> np.ndarray:
-        """Faces 0-3 are walls, 4-5 floor and ceiling."""
-        rng = np.random.default_rng([seed, 1031, k])
-        return (plain_texture if layout.plain_walls and k < 4 else surface_texture)(rng, width_m, height_m)
-
-    out = room_surfaces(layout.room, light, texture)
-    palette = {**colours, **EXTRA_COLOURS}
-    for obj in layout.objects:
-        rng = np.random.default_rng([seed, 1037, obj.id])
-        colour = np.array(palette.get(obj.label, (128, 128, 128)), float) * rng.uniform(0.75, 1.25, 3)
-        out.extend(box_surfaces(obj, object_texture(rng, max(obj.size), colour + rng.normal(0.0, 20.0, 3)), light, rng))
-    return out

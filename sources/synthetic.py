@@ -29,7 +29,7 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from perception.frame import CameraModel, Detection, Frame, Intrinsics
-from sources import scene, scene_family
+from sources import family_render, scene, scene_family
 from sources.base import Dataset, DatasetError, ObjectTruth, Trajectory, as_box
 from sources.raycast import (
     Render,
@@ -124,7 +124,7 @@ class SyntheticDataset(Dataset):
         if name == "family":
             self.family = scene_family.make_layout(self.seed)
             poses = scene_family.family_poses(self.family, frames, self.fps, revolutions)
-            return poses, list(self.family.objects), scene_family.family_surfaces(self.family, _COLOURS)
+            return poses, list(self.family.objects), family_render.family_surfaces(self.family, _COLOURS)
         poses = scene.orbit_trajectory(frames, self.fps, self.seed, revolutions)
         objects = scene.place_objects(self.seed, poses[:, :3, 3])
         return poses, objects, _surfaces(self.seed, objects)

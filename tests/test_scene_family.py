@@ -13,6 +13,7 @@ from rich.console import Console
 from bench.objects_family import family_seeds, keyframes, run_family_bench, worst_decile
 from perception.frontend import KeyframeSettings
 from sources.family_paths import MAX_YAW_RATE_DEG_S, PATH_KINDS, heading_rates_deg_s
+from sources.family_render import plain_texture
 from sources.raycast import surface_texture
 from sources.scene_family import (
     CLEARANCE_M,
@@ -23,7 +24,6 @@ from sources.scene_family import (
     FamilyLayout,
     family_poses,
     make_layout,
-    plain_texture,
     size_class,
 )
 from sources.synthetic import SyntheticDataset, parse_synthetic_spec
