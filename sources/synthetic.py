@@ -15,6 +15,10 @@ Spec: ``synthetic:room?seed=0&frames=300&width=640&height=480&fps=30`` plus opti
 ``odom_drift`` (1.0 = ~2 mm / 0.05 deg per-frame noise and 0.02 deg/frame yaw bias), ``miss_rate`` (0.05),
 ``fp_rate`` (0.05 false positives per frame), ``depth_noise`` (1.0 = Kinect sigma), ``loop_gap``
 (100 frames between loop pairs) and ``revolutions`` (1.15 turns over the sequence).
+
+``synthetic:family?seed=N&...`` (same knobs) is a randomized scene per seed instead, rendered the same way: room
+size, furniture, rows of same-class objects, cluttered tables, plain walls and the camera path kind all drawn
+from the seed (``sources.scene_family``; its layout in ``SyntheticDataset.family``).
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from perception.frame import CameraModel, Detection, Frame, Intrinsics
-from sources import scene
+from sources import family_render, scene, scene_family
 from sources.base import Dataset, DatasetError, ObjectTruth, Trajectory, as_box
 from sources.raycast import (
     Render,
@@ -37,7 +41,7 @@ from sources.raycast import (
     surface_texture,
 )
 
-SCENES = ("room",)
+SCENES = ("room", "family")
 MIN_DEPTH_M, MAX_DEPTH_M = 0.4, 4.0
 _COLOURS: dict[str, tuple[int, int, int]] = {
     "dining table": (150, 100, 60),
@@ -101,17 +105,29 @@ class SyntheticDataset(Dataset):
         self.miss_rate, self.fp_rate, self.depth_noise = float(miss_rate), float(fp_rate), float(depth_noise)
         f = 525.0 * width / 640.0
         self.camera = CameraModel(Intrinsics(f, f, (width - 1) / 2.0, (height - 1) / 2.0), width, height, 1000.0)
-        self._poses = scene.orbit_trajectory(frames, fps, self.seed, revolutions)
-        self._objects = scene.place_objects(self.seed, self._poses[:, :3, 3])
+        self.family: scene_family.FamilyLayout | None = None
+        self._poses, self._objects, surfaces = self._layout(scene_name, frames, revolutions)
         self._odometry = scene.drifting_odometry(self._poses, self.seed, float(odom_drift))
         self._labels = sorted({o.label for o in self._objects})
         self.min_pixels = max(20, round(400 * width * height / (640 * 480)))
         self.min_side = 0.04 * min(width, height)
-        self._renderer = Renderer(_surfaces(self.seed, self._objects), self.camera.color, width, height)
+        self._renderer = Renderer(surfaces, self.camera.color, width, height)
         n_pix = width * height
         self._gauss = np.random.default_rng([self.seed, 41]).standard_normal(3 * n_pix, dtype=np.float32)
         self._cache: dict[int, Render] = {}
         self._loops: list[tuple[int, int]] | None = None
+
+    def _layout(
+        self, name: str, frames: int, revolutions: float
+    ) -> tuple[np.ndarray, list[ObjectTruth], list[Surface]]:
+        """True poses, objects and surfaces of scene ``name`` (``family``: its layout is kept in ``self.family``)."""
+        if name == "family":
+            self.family = scene_family.make_layout(self.seed)
+            poses = scene_family.family_poses(self.family, frames, self.fps, revolutions)
+            return poses, list(self.family.objects), family_render.family_surfaces(self.family, _COLOURS)
+        poses = scene.orbit_trajectory(frames, self.fps, self.seed, revolutions)
+        objects = scene.place_objects(self.seed, poses[:, :3, 3])
+        return poses, objects, _surfaces(self.seed, objects)
 
     def __len__(self) -> int:
         """Number of frames."""
