@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from evaluation.object_metrics import aligned_objects, object_scores
+from evaluation.object_truth import object_truth_for, per_object, per_object_markdown
 from evaluation.trajectory_metrics import error_dict, evaluate
 from graph.trajectory import match_timestamps
 from perception.clustering import ClusterConfig
@@ -26,7 +27,7 @@ from sources.tum import read_trajectory
 BEGIN, END = "<!-- objslam eval -->", "<!-- /objslam eval -->"
 
 
-def evaluate_run(run_dir: Path, gt_spec: str) -> str:
+def evaluate_run(run_dir: Path, gt_spec: str, objects_gt: Path | None = None) -> str:
     """Evaluate ``run_dir`` against ``gt_spec``; writes ``metrics.json``, ``eval.png`` and the evaluation
     section of ``report.md`` (the run's own summary stays); returns that section."""
     data = open_dataset(gt_spec)
@@ -46,10 +47,12 @@ def evaluate_run(run_dir: Path, gt_spec: str) -> str:
         "run": str(run_dir),
         "ate": {name: error_dict(err) for name, err in errors.items()},
     }
-    truth, objects_file = data.objects, run_dir / "objects.json"
-    if truth and objects_file.is_file() and "trajectory" in errors:
-        mapped = aligned_objects(json.loads(objects_file.read_text()), errors["trajectory"].alignment)
-        result["objects"] = object_scores(mapped, truth, ClusterConfig().axis_scale)
+    truth, objects_file = object_truth_for(data, objects_gt), run_dir / "objects.json"
+    if truth is not None and truth.objects and objects_file.is_file() and "trajectory" in errors:
+        entries, scale = json.loads(objects_file.read_text()), ClusterConfig().axis_scale
+        mapped = aligned_objects(entries, truth.box_frame_from_world @ errors["trajectory"].alignment)
+        result["objects"] = object_scores(mapped, truth.objects, scale) | {"truth": truth.source}
+        result["objects"]["per_object"] = per_object(mapped, truth, scale, entries)
     section = evaluation_markdown(result)
     report = run_dir / "report.md"
     atomic_write(report, with_section(report.read_text() if report.is_file() else None, section))
@@ -89,6 +92,7 @@ def evaluation_markdown(result: dict[str, Any]) -> str:
             f"its centre lies inside the true box grown by 0.25 m (one-to-one); IoU of the ellipse at "
             f"{objects['axis_scale']:g} std with the true box footprint.",
         ]
+        lines += per_object_markdown(objects["per_object"]) if "per_object" in objects else []
     lines += ["", "Per-frame position error: `eval.png`; figures: `metrics.json`."]
     return "\n".join(lines) + "\n"
 
