@@ -5,7 +5,7 @@ An object is marked by a polygon (colour pixels) in a few frames. The depth pixe
 of the object's marked views see it (depth agrees at its pixel) inside their polygon and no more of them see
 it outside (``carve``): background seen through a gap of one view's polygon is seen outside the others, or by
 none of them. The largest connected part of what remains, above the supporting plane, gets a box upright in
-the gravity frame (``fit_box``): yaw from the footprint (smallest box area) or from the highest points (a
+the floor's frame (``fit_box``): yaw from the footprint (smallest box area) or from the highest points (a
 chair's back), extents between percentiles, bottom on the supporting plane. ``complete`` grows a side that no
 view's depth could reach (a chair's seat under a table, a screen's depth) to a stated length.
 
@@ -43,7 +43,7 @@ class View:
 
 @dataclass(frozen=True)
 class Box:
-    """An upright box of the gravity frame: centre, size along (yaw, yaw + 90 deg, up), yaw about up."""
+    """An upright box (z up, the floor normal): centre, size along (yaw, yaw + 90 deg, up), yaw about up."""
 
     center: np.ndarray
     size: np.ndarray
@@ -180,7 +180,7 @@ def fit_box(
     top: str = "max",
     percentile: float = 0.5,
 ) -> Box:
-    """An upright box around gravity-frame ``points``: horizontal extents between the ``percentile`` and
+    """An upright box around upright-frame ``points``: horizontal extents between the ``percentile`` and
     100 - ``percentile`` percentiles along the yaw axes; yaw of the smallest such footprint (``footprint``)
     or along the highest tenth of the points (``top``: a chair's back rail, a screen); bottom at ``bottom``
     (the supporting plane) or the lowest points; top at the highest points (``max``, the 99.5th percentile)
@@ -239,9 +239,9 @@ def complete(box: Box, axis: int, length: float, toward: np.ndarray) -> Box:
 
 def outline_box(views: list[View], camera: CameraModel, R: np.ndarray, points: np.ndarray, border: float = 2.0) -> Box:
     """The box of a flat upright object (a screen) whose depth is too sparse for its extents: the vertical
-    plane of its gravity-frame ``points`` (yaw along their footprint, offset at their median), and the
+    plane of its upright-frame ``points`` (yaw along their footprint, offset at their median), and the
     extents of the polygon vertices that are not on the image border nor cut, their rays cut with that plane
-    (``R``: gravity frame from world). Zero thickness; ``complete`` gives it one."""
+    (``R``: upright frame from world). Zero thickness; ``complete`` gives it one."""
     xy = points[:, :2]
     _, vecs = np.linalg.eigh(np.cov((xy - xy.mean(0)).T))
     along = vecs[:, 1]
@@ -256,7 +256,7 @@ def outline_box(views: list[View], camera: CameraModel, R: np.ndarray, points: n
         inner = poly[on_outline if view.cut is None else on_outline & ~view.cut]
         if len(inner) == 0:
             continue
-        T = R @ (view.pose @ _color_to_depth(camera))[:3]  # gravity frame from the colour camera
+        T = R @ (view.pose @ _color_to_depth(camera))[:3]  # upright frame from the colour camera
         rays = pixels_to_points(inner[:, 0], inner[:, 1], np.ones(len(inner)), camera.color) @ T[:, :3].T
         t = (offset - T[:2, 3] @ normal) / (rays[:, :2] @ normal)
         hits = T[:, 3] + t[:, None] * rays
