@@ -216,12 +216,20 @@ def run(
 def evaluate_cmd(
     run_dir: Annotated[Path, typer.Argument(help="a run output directory")],
     gt: Annotated[str, typer.Option("--gt", help="the dataset with ground truth")],
+    objects_gt: Annotated[
+        Path | None,
+        typer.Option(
+            "--objects-gt",
+            help="object ground truth to score against (default: the dataset's own, or "
+            "the repository's annotation of that dataset, evaluation/data/*/objects_gt.json)",
+        ),
+    ] = None,
 ) -> None:
     """A run directory against a dataset's ground truth: ATE / RPE and, with ground-truth objects, object
     metrics; writes its section of report.md, metrics.json and eval.png."""
     from service.evaluate import evaluate_run
 
-    console.print(evaluate_run(run_dir, gt))
+    console.print(evaluate_run(run_dir, gt, objects_gt))
 
 
 @app.command("config")

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from evaluation.object_metrics import aligned_objects, error_summary, error_vectors, object_scores
+from evaluation.object_truth import object_truth_for, per_object, per_object_markdown
 from evaluation.trajectory_metrics import error_dict, evaluate
 from graph.trajectory import match_timestamps
 from perception.clustering import ClusterConfig
@@ -28,7 +29,7 @@ from sources.tum import read_trajectory
 BEGIN, END = "<!-- objslam eval -->", "<!-- /objslam eval -->"
 
 
-def evaluate_run(run_dir: Path, gt_spec: str) -> str:
+def evaluate_run(run_dir: Path, gt_spec: str, objects_gt: Path | None = None) -> str:
     """Evaluate ``run_dir`` against ``gt_spec``; writes ``metrics.json``, ``eval.png`` and the evaluation
     section of ``report.md`` (the run's own summary stays); returns that section."""
     data = open_dataset(gt_spec)
@@ -48,15 +49,19 @@ def evaluate_run(run_dir: Path, gt_spec: str) -> str:
         "run": str(run_dir),
         "ate": {name: error_dict(err) for name, err in errors.items()},
     }
-    truth, objects_file = data.objects, run_dir / "objects.json"
-    if truth and objects_file.is_file() and "trajectory" in errors:
-        mapped = aligned_objects(json.loads(objects_file.read_text()), errors["trajectory"].alignment)
+    truth, objects_file = object_truth_for(data, objects_gt), run_dir / "objects.json"
+    if truth is not None and truth.objects and objects_file.is_file() and "trajectory" in errors:
+        entries, scale = json.loads(objects_file.read_text()), ClusterConfig().axis_scale
+        to_boxes = truth.box_frame_from_world  # the frame the true boxes are upright in (identity: synthetic)
+        mapped = aligned_objects(entries, to_boxes @ errors["trajectory"].alignment)
         camera = data.camera
-        per_object = error_vectors(mapped, truth, gt.poses, camera.color, camera.width, camera.height)
+        vectors = error_vectors(mapped, truth.objects, to_boxes @ gt.poses, camera.color, camera.width, camera.height)
         result["objects"] = {
-            **object_scores(mapped, truth, ClusterConfig().axis_scale),
-            **error_summary(per_object),
-            "per_object": per_object,
+            **object_scores(mapped, truth.objects, scale),
+            "truth": truth.source,
+            **error_summary(vectors),
+            "per_object": vectors,
+            "objects_table": per_object(mapped, truth, scale, entries),
         }
     section = evaluation_markdown(result)
     report = run_dir / "report.md"
@@ -98,6 +103,7 @@ def evaluation_markdown(result: dict[str, Any]) -> str:
             f"{objects['axis_scale']:g} std with the true box footprint.",
             *error_table(objects),
         ]
+        lines += per_object_markdown(objects["objects_table"]) if "objects_table" in objects else []
     lines += ["", "Per-frame position error: `eval.png`; figures: `metrics.json`."]
     return "\n".join(lines) + "\n"
 
