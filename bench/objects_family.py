@@ -281,6 +281,6 @@ def _notes(frames: int, size: tuple[int, int], min_frames: int, seconds: float) 
         f"pairs. A mapped object matches a true one of its label when its centroid lies inside the true box grown by "
         f"0.25 m (one-to-one); unmatched mapped objects are false. Per scene: the median IoU and centroid error over "
         f"its matched objects; the summary rows give the median over the scenes and the worst decile (the 10th "
-        f"percentile of mapped % and IoU, the 90th of false % and centroid error, linear interpolation). Measured on "
-        f"the object path before the centroid fix of issue 24 item 1. Total {seconds:.0f} s of rendering and mapping."
+        f"percentile of mapped % and IoU, the 90th of false % and centroid error, linear interpolation). "
+        f"Total {seconds:.0f} s of rendering and mapping."
     )
