@@ -103,6 +103,15 @@ class ObjectMapper:
         self._prev = _Keyframe(detections, depth_m, pose, index)
         return self.clusterer.step(obs, [self.tracker.associated(t) for t in ids])
 
+    def observation(self, source: int) -> tuple[int, FeatureVector]:
+        """A stored observation (a ``FeatureVector.sources`` id): its keyframe and camera-frame feature vector."""
+        return self._obs_keyframe[source], self._obs_local[source]
+
+    @property
+    def observations(self) -> int:
+        """How many keyframe observations are stored."""
+        return len(self._obs_local)
+
     def _store(self, keyframe: int, local: FeatureVector) -> FeatureVector:
         """Keep a camera-frame observation; the same vector tagged with its store id."""
         self._obs_keyframe.append(keyframe)

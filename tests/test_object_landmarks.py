@@ -67,7 +67,7 @@ def test_repose_follows_a_pose_correction_of_part_of_the_sequence(scene):
     moved = {j: (shift @ T if j >= 75 else T) for j, T in enumerate(scene.poses)}
     mapper.repose(moved)
     for f in mapper.clusterer.features:
-        parts = [transform_feature(mapper._obs_local[i], moved[mapper._obs_keyframe[i]]) for i in f.sources]
+        parts = [transform_feature(local, moved[k]) for k, local in map(mapper.observation, f.sources)]
         np.testing.assert_allclose(
             f.mean, np.average([p.mean for p in parts], axis=0, weights=[p.n for p in parts]), atol=1e-9
         )
@@ -154,9 +154,9 @@ def test_the_pipeline_puts_objects_in_the_graph_and_re_clusters_after_loop_closu
         np.linalg.norm(
             f.mean
             - np.average(
-                [transform_feature(mapper._obs_local[i], poses[mapper._obs_keyframe[i]]).mean for i in f.sources],
+                [transform_feature(local, poses[k]).mean for k, local in map(mapper.observation, f.sources)],
                 axis=0,
-                weights=[mapper._obs_local[i].n for i in f.sources],
+                weights=[mapper.observation(i)[1].n for i in f.sources],
             )
         )
         for f in mapper.clusterer.features
@@ -184,7 +184,7 @@ def test_a_view_cut_by_the_image_border_weighs_less_in_the_pooled_object(scene):
     for weight in (1.0, 0.25):
         mapper = ObjectMapper(features=FeatureConfig(cut_weight=weight))
         mapper.add_keyframe(0, [whole, cut], scene.depth_m(j), scene.K, scene.poses[j])
-        counts[weight] = [f.n for f in mapper._obs_local]
+        counts[weight] = [mapper.observation(i)[1].n for i in range(mapper.observations)]
         assert len(mapper.last_observations) == 1  # the whole view only
     assert counts[1.0][0] == counts[0.25][0]
     assert counts[0.25][1] == round(0.25 * counts[1.0][1])
