@@ -155,6 +155,11 @@ class SyntheticDataset(Dataset):
             self._loops = scene.find_loops(self._poses, self.loop_gap)
         return list(self._loops)
 
+    @property
+    def surfaces(self) -> list:
+        """The rendered scene's surfaces (walls, floor and ceiling first, then the objects'); evaluation only."""
+        return list(self._renderer.surfaces)
+
     def instance_mask(self, index: int) -> np.ndarray:
         """Per-pixel object id (uint16, 0 = room) of the nearest surface in frame ``index``."""
         return self._render(index).ids.copy()

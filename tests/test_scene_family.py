@@ -171,8 +171,8 @@ def test_plain_walls_are_texture_poor() -> None:
     assert grad(plain) < 0.2 * grad(rich) and plain.std() < 10
     lay = next(make_layout(s) for s in SEEDS if make_layout(s).plain_walls)
     ds = SyntheticDataset("family", seed=lay.seed, frames=4, width=32, height=32)
-    walls = ds._renderer.surfaces[:4]
-    assert all(s.texture.std() < 25 for s in walls) and ds._renderer.surfaces[4].texture.std() > 25
+    walls = ds.surfaces[:4]
+    assert all(s.texture.std() < 25 for s in walls) and ds.surfaces[4].texture.std() > 25
 
 
 def test_held_out_seeds_are_many_distinct_and_not_for_tuning() -> None:
