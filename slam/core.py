@@ -130,7 +130,7 @@ class SlamCore:
             if frame.odometry is None:
                 log.info("frames carry no odometry: using RGB-D visual odometry")
             self.tracking = self.tracking_factory(frame.camera, frame.odometry is not None)
-        version, n_loops = self.object_map_version, len(self.loop_records())
+        version, n_loops = self.object_map_version, len(self.loops.records) if self.loops is not None else 0
         t0 = time.perf_counter()
         step = self.tracking.frontend.track(frame)
         self.timings["frontend"] = time.perf_counter() - t0
@@ -145,7 +145,7 @@ class SlamCore:
         return StepResult(
             record,
             record.keyframe if record.is_keyframe else None,
-            self.loop_records()[n_loops:],
+            self.loops.records[n_loops:] if self.loops is not None else [],
             self.object_map_version != version,
             dict(self.timings),
         )

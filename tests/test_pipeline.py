@@ -129,3 +129,15 @@ def test_a_failing_object_mapping_is_counted_and_the_pipeline_goes_on(monkeypatc
         assert p.mapping_errors == p.graph.num_keyframes - 2 and p.keyframe_detections
     finally:
         p.close()
+
+
+def test_each_step_returns_what_it_changed():
+    ds = open_dataset("synthetic:room?seed=0&frames=160&fps=10&width=320&height=240")
+    core = build_core(load_settings(None, {"loops": {"source": "appearance"}}))
+    results = [core.step(ds.frame(i)) for i in range(160)]
+    assert [r.record for r in results] == core.records
+    assert all((r.keyframe is not None) == r.record.is_keyframe for r in results)
+    assert [r.keyframe for r in results if r.keyframe is not None] == list(range(core.graph.num_keyframes))
+    judged = [record for r in results for record in r.loops]
+    assert judged == core.loop_records() and any(record.accepted for record in judged)
+    assert sum(r.objects_changed for r in results) >= 1 and all("frontend" in r.timings for r in results)
