@@ -63,7 +63,6 @@ class Frame:
     odometry: np.ndarray | None = None
     detections: list[Detection] | None = None
     index: int = -1
-    extra: dict = field(default_factory=dict)
     _depth_m: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     def depth_m(self) -> np.ndarray:

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from loops.records import LoopRecord
+from loops.records import LoopRecord, Verified
 from perception.clustering import ObjectEllipsoid
 from perception.frame import Detection
 
@@ -41,7 +41,7 @@ class KeyframeObjects:
 class KeyframeLoops:
     """What verifying one keyframe's loop candidates produced, to be gated against the graph."""
 
-    verified: list  # list[loops.records.Verified]
+    verified: list[Verified]
     timings: dict[str, float] = field(default_factory=dict)
 
 
