@@ -152,19 +152,16 @@ def cluster_labels(features: Sequence[FeatureVector], config: ClusterConfig) -> 
 
 
 def merge_overlapping(
-    clusters: list[list[FeatureVector]],
-    config: ClusterConfig,
-    covisible: frozenset[tuple[int, int]] | set[tuple[int, int]] = frozenset(),
+    clusters: list[list[FeatureVector]], config: ClusterConfig, keyframe_of: Sequence[int] = ()
 ) -> list[list[FeatureVector]]:
     """Union same-class clusters whose pooled Gaussians are within ``merge_distance`` (SPEC 6.8 merges): partial
-    views of one object. Never two clusters holding tracks that were detected side by side in one keyframe
-    (``covisible`` pairs of track ids, smaller first): those are two objects, however close (a row of chairs)."""
+    views of one object. Never two clusters holding observations of one keyframe (``keyframe_of[s]``: the keyframe
+    of observation ``s`` of ``FeatureVector.sources``): two detections of one image are two objects, however
+    close (a row of chairs). Judged per observation, not per track, so a track that NPDA carried from one
+    chair to its neighbour does not keep the views of either chair apart."""
     pooled = [merge_features(c) for c in clusters]
     parent = list(range(len(clusters)))
-    tracks = [{f.track_id for f in c} for c in clusters]  # by root: the tracks of its merged group
-
-    def apart(a: set[int], b: set[int]) -> bool:
-        return any((min(x, y), max(x, y)) in covisible for x in a for y in b)
+    frames = [{keyframe_of[s] for f in c for s in f.sources if s < len(keyframe_of)} for c in clusters]
 
     def root(i: int) -> int:
         while parent[i] != i:
@@ -182,9 +179,9 @@ def merge_overlapping(
                 <= config.merge_distance
             ):
                 ri, rj = root(i), root(j)
-                if ri != rj and not apart(tracks[ri], tracks[rj]):
+                if ri != rj and not frames[ri] & frames[rj]:
                     parent[rj] = ri
-                    tracks[ri] |= tracks[rj]
+                    frames[ri] |= frames[rj]  # by root: the keyframes of its merged group
     groups: dict[int, list[FeatureVector]] = {}
     for i, c in enumerate(clusters):
         groups.setdefault(root(i), []).extend(c)
@@ -261,7 +258,8 @@ class Clusterer:
         self.features: list[FeatureVector] = []
         self.objects: list[ObjectEllipsoid] = []
         self.reclusterings = 0
-        self.covisible: set[tuple[int, int]] = set()  # same-class track pairs detected in one keyframe
+        self.keyframe_of: Sequence[int] = ()
+        """The keyframe of each observation id of ``FeatureVector.sources`` (``ObjectMapper``'s store)."""
         self._fit = self._out = self._new = 0
         self._next_id = 1
 
@@ -273,20 +271,11 @@ class Clusterer:
             "reclusterings": self.reclusterings,
             "counts": (self._fit, self._out, self._new),
             "next_id": self._next_id,
-            "covisible": self.covisible,
         }
 
     def restore(self, state: dict) -> None:
         self.features, self.objects, self.reclusterings = state["features"], state["objects"], state["reclusterings"]
         (self._fit, self._out, self._new), self._next_id = state["counts"], state["next_id"]
-        self.covisible = set(state.get("covisible", ()))  # snapshots of 0.1.0 have none
-
-    def note_covisible(self, detected: Sequence[tuple[str, int]]) -> None:
-        """Record the (label, track id) detections of one keyframe: same-class tracks seen side by side."""
-        for i, (label_a, a) in enumerate(detected):
-            for label_b, b in detected[i + 1 :]:
-                if label_a == label_b and a != b:
-                    self.covisible.add((min(a, b), max(a, b)))
 
     def add(self, features: Sequence[FeatureVector | None]) -> None:
         """Store new feature vectors for the next clustering."""
@@ -327,7 +316,7 @@ class Clusterer:
             for k in range(int(labels.max(initial=-1)) + 1)
         ]
         if self.config.merge_distance > 0:
-            clusters = merge_overlapping(clusters, self.config, self.covisible)
+            clusters = merge_overlapping(clusters, self.config, self.keyframe_of)
         self.objects = self._carry_ids(sorted(clusters, key=len, reverse=True))
         self.reclusterings += 1
         self._fit = self._out = self._new = 0

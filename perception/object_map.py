@@ -61,6 +61,7 @@ class ObjectMapper:
         self._prev: _Keyframe | None = None
         self.associations = 0
         self._obs_keyframe: list[int] = []
+        self.clusterer.keyframe_of = self._obs_keyframe  # two observations of one keyframe: two objects
         self._obs_local: list[FeatureVector] = []
         self.last_observations: list[tuple[int, np.ndarray, float]] = []
         """The latest keyframe's (track id, camera-frame centroid, largest std of its points (m)) per detection
@@ -96,9 +97,6 @@ class ObjectMapper:
             if f is not None and inside
         ]
         pooled = [self.tracker.observe(t, f) for t, f in zip(ids, obs, strict=True)]
-        self.clusterer.note_covisible(
-            [(d.label, t) for d, t, f in zip(detections, ids, obs, strict=True) if f is not None]
-        )
         self.clusterer.add([*pooled, *self.tracker.close_stale(index)])
         self._prev = _Keyframe(detections, depth_m, pose, index)
         return self.clusterer.step(obs, [self.tracker.associated(t) for t in ids])
@@ -171,6 +169,7 @@ class ObjectMapper:
         self.associations = state["associations"]
         store = state.get("observations", {"keyframe": [], "local": []})
         self._obs_keyframe, self._obs_local = [int(k) for k in store["keyframe"]], list(store["local"])
+        self.clusterer.keyframe_of = self._obs_keyframe
 
     def finish(self) -> list[ObjectEllipsoid]:
         """End of sequence: emit every open track window and re-cluster once more."""

@@ -116,30 +116,28 @@ def test_object_ids_persist_across_reclustering() -> None:
     assert second["cup"] not in first.values()
 
 
-def _chair(x: float, track: int) -> FeatureVector:
-    return FeatureVector(np.array([x, 0.0, 0.45]), np.diag([0.04, 0.04, 0.04]), 50, "chair", track)
+def _chair(x: float, source: int) -> FeatureVector:
+    """A view of a chair at x, observation ``source`` of the store (its track: the same number)."""
+    return FeatureVector(np.array([x, 0.0, 0.45]), np.diag([0.04, 0.04, 0.04]), 50, "chair", source, (source,))
 
 
 def test_partial_views_merge_but_same_class_objects_seen_side_by_side_stay_apart() -> None:
     config = ClusterConfig()
-    left, right = [_chair(0.0, 1), _chair(0.02, 1)], [_chair(0.65, 2), _chair(0.67, 2)]  # a row: 0.65 m apart
+    left, right = [_chair(0.0, 0), _chair(0.02, 1)], [_chair(0.65, 2), _chair(0.67, 3)]  # a row: 0.65 m apart
     a, b = merge_features(left), merge_features(right)
     assert bhattacharyya(a.mean, a.var, b.mean, b.var) <= config.merge_distance  # close enough to look like one
-    assert len(merge_overlapping([left, right], config)) == 1  # two views of one chair, never seen together
-    assert len(merge_overlapping([left, right], config, {(1, 2)})) == 2  # both detected in one keyframe
-    third = [_chair(0.3, 3)]  # a view between them may join one of them, never both
-    groups = merge_overlapping([left, right, third], config, {(1, 2)})
-    assert len(groups) == 2 and all({f.track_id for f in g} != {1, 2, 3} for g in groups)
+    assert len(merge_overlapping([left, right], config, [10, 11, 12, 13])) == 1  # never seen in one keyframe
+    assert len(merge_overlapping([left, right], config, [10, 11, 11, 13])) == 2  # 1 and 2: one keyframe's
+    third = [_chair(0.3, 4)]  # a view between them may join one of them, never both
+    groups = merge_overlapping([left, right, third], config, [10, 11, 11, 13, 14])
+    assert len(groups) == 2 and all({f.track_id for f in g} != {0, 1, 2, 3, 4} for g in groups)
 
 
-def test_the_clusterer_records_same_class_tracks_detected_in_one_keyframe() -> None:
-    c = Clusterer()
-    c.note_covisible([("chair", 5), ("cup", 2), ("chair", 3), ("chair", 5)])
-    assert c.covisible == {(3, 5)}
-    restored = Clusterer()
-    restored.restore(c.state())
-    assert restored.covisible == {(3, 5)}
-    old = c.state()
-    del old["covisible"]  # a snapshot of release 0.1.0
-    restored.restore(old)
-    assert restored.covisible == set()
+def test_the_mapper_gives_the_clusterer_the_keyframe_of_every_observation() -> None:
+    from perception.object_map import ObjectMapper
+
+    mapper = ObjectMapper()
+    assert mapper.clusterer.keyframe_of is mapper._obs_keyframe
+    restored = ObjectMapper()
+    restored.restore(mapper.state())
+    assert restored.clusterer.keyframe_of is restored._obs_keyframe
