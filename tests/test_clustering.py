@@ -134,10 +134,21 @@ def test_partial_views_merge_but_same_class_objects_seen_side_by_side_stay_apart
 
 
 def test_the_mapper_gives_the_clusterer_the_keyframe_of_every_observation() -> None:
+    from perception.camera import Intrinsics
+    from perception.frame import Detection
     from perception.object_map import ObjectMapper
 
+    K, depth = Intrinsics(100.0, 100.0, 39.5, 29.5), np.full((60, 80), 2.0, np.float32)
+    chairs = [Detection("chair", 0.9, (5.0, 10.0, 30.0, 50.0)), Detection("chair", 0.9, (45.0, 10.0, 70.0, 50.0))]
+
+    def stored(m: ObjectMapper) -> list[int]:
+        return [m.observation(s)[0] for s in range(m.observations)]
+
     mapper = ObjectMapper()
-    assert mapper.clusterer.keyframe_of is mapper._obs_keyframe
+    for k in (0, 3):
+        mapper.add_keyframe(k, chairs, depth, K, np.eye(4))
+    assert stored(mapper) == [0, 0, 3, 3] and list(mapper.clusterer.keyframe_of) == stored(mapper)
     restored = ObjectMapper()
     restored.restore(mapper.state())
-    assert restored.clusterer.keyframe_of is restored._obs_keyframe
+    restored.add_keyframe(6, chairs, depth, K, np.eye(4))  # the restored store keeps reaching the clusterer
+    assert list(restored.clusterer.keyframe_of) == stored(restored) == [0, 0, 3, 3, 6, 6]
