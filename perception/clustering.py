@@ -8,7 +8,7 @@ an object, shown as an ellipsoid (mean, principal axes times ``axis_scale`` stan
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import hdbscan
@@ -223,9 +223,20 @@ def merge_track_runs(features: Sequence[FeatureVector], run: int) -> list[Featur
     ]
 
 
-def ellipsoid(members: Sequence[FeatureVector], object_id: int, axis_scale: float) -> ObjectEllipsoid:
-    """The object of a cluster: pooled mean and covariance, semi-axes = eigenvector * sqrt(eigenvalue) * scale."""
+Locate = Callable[[Sequence[FeatureVector]], "tuple[np.ndarray, np.ndarray] | None"]
+"""An object's centre and covariance from its cluster's members (``ObjectMapper``: stretched to the floor), or
+None to keep the pooled Gaussian's."""
+
+
+def ellipsoid(
+    members: Sequence[FeatureVector], object_id: int, axis_scale: float, locate: Locate | None = None
+) -> ObjectEllipsoid:
+    """The object of a cluster: pooled mean and covariance (or ``locate``'s), semi-axes = eigenvector *
+    sqrt(eigenvalue) * scale."""
     pooled = merge_features(members)
+    located = locate(members) if locate is not None else None
+    if located is not None:
+        pooled = FeatureVector(located[0], located[1], pooled.n, pooled.label, pooled.track_id, pooled.sources)
     vals, vecs = np.linalg.eigh(pooled.cov)
     axes = (vecs * (np.sqrt(np.clip(vals, 0.0, None)) * axis_scale)).T
     return ObjectEllipsoid(
@@ -260,6 +271,8 @@ class Clusterer:
         self.reclusterings = 0
         self.keyframe_of: Sequence[int] = ()
         """The keyframe of each observation id of ``FeatureVector.sources`` (``ObjectMapper``'s store)."""
+        self.locate: Locate | None = None
+        """Where a cluster's object lies (``ellipsoid``); None: its pooled Gaussian."""
         self._fit = self._out = self._new = 0
         self._next_id = 1
 
@@ -346,5 +359,5 @@ class Clusterer:
             else:
                 oid, self._next_id = self._next_id, self._next_id + 1
             used.add(oid)
-            out.append(ellipsoid(members, oid, self.config.axis_scale))
+            out.append(ellipsoid(members, oid, self.config.axis_scale, self.locate))
         return out

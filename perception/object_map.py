@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -18,9 +18,18 @@ from perception.features import (
     merge_features,
     transform_feature,
 )
+from perception.floor import FLOOR_CLASSES, Floor, FloorConfig, level_plane, on_floor, world_plane
 from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
 from perception.tracks import Tracker
+
+MAX_FLOOR_VIEWS = 2000
+"""Keyframes whose floor planes are kept (the newest): the floor needs many views, not all of them."""
+
+
+def _has(poses: Mapping[int, np.ndarray] | np.ndarray, k: int) -> bool:
+    """Whether ``poses`` (a mapping, or an array indexed by keyframe) holds keyframe ``k``."""
+    return k in poses if isinstance(poses, Mapping) else 0 <= k < len(poses)
 
 
 def _weighed(f: FeatureVector | None, whole: bool, cut_weight: float) -> FeatureVector | None:
@@ -53,6 +62,7 @@ class ObjectMapper:
         clustering: ClusterConfig | None = None,
         features: FeatureConfig | None = None,
         tracker: Tracker | None = None,
+        floor: FloorConfig | None = None,
     ):
         self.npda = npda if npda is not None else NPDAConfig()
         self.features = features if features is not None else FeatureConfig()
@@ -62,6 +72,13 @@ class ObjectMapper:
         self.associations = 0
         self._obs_keyframe: list[int] = []
         self.clusterer.keyframe_of = self._obs_keyframe  # two observations of one keyframe: two objects
+        self.floor_config = floor if floor is not None else FloorConfig()
+        self._floor_views: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        """Per keyframe whose lower half shows a level plane below the camera: that plane (camera frame) and the
+        keyframe's camera-to-world pose (``repose`` updates it); the newest ``MAX_FLOOR_VIEWS``."""
+        self._floor: Floor | None = None
+        self._floor_stale = False
+        self.clusterer.locate = self._locate
         self._obs_local: list[FeatureVector] = []
         self.last_observations: list[tuple[int, np.ndarray, float]] = []
         """The latest keyframe's (track id, camera-frame centroid, largest std of its points (m)) per detection
@@ -91,6 +108,12 @@ class ObjectMapper:
             for d, t, inside in zip(detections, ids, whole, strict=True)
         ]
         obs = [None if f is None else transform_feature(self._store(index, f), pose) for f in local]
+        plane = level_plane(depth_m, K, self.floor_config)
+        if plane is not None:
+            self._floor_views[index] = (plane, np.array(pose, float))
+            while len(self._floor_views) > MAX_FLOOR_VIEWS:
+                del self._floor_views[next(iter(self._floor_views))]
+            self._floor_stale = True
         self.last_observations = [
             (t, f.mean, float(np.sqrt(np.linalg.eigvalsh(f.cov)[-1])))
             for f, t, inside in zip(local, ids, whole, strict=True)
@@ -100,6 +123,25 @@ class ObjectMapper:
         self.clusterer.add([*pooled, *self.tracker.close_stale(index)])
         self._prev = _Keyframe(detections, depth_m, pose, index)
         return self.clusterer.step(obs, [self.tracker.associated(t) for t in ids])
+
+    @property
+    def floor(self) -> Floor | None:
+        """The floor the keyframes agree on (``perception.floor``), None until ``FloorConfig.min_keyframes`` do."""
+        if self._floor_stale:
+            planes = [world_plane(p, T) for p, T in self._floor_views.values()]
+            self._floor = Floor.estimate(np.array(planes).reshape(-1, 4), self.floor_config)
+            self._floor_stale = False
+        return self._floor
+
+    def _locate(self, members: Sequence[FeatureVector]) -> tuple[np.ndarray, np.ndarray] | None:
+        """A floor-standing object reaches down to the floor (``perception.floor.on_floor``); None keeps the
+        cluster's pooled Gaussian."""
+        floor = self.floor
+        if floor is None or not members or members[0].label not in FLOOR_CLASSES:
+            return None
+        n = np.array([f.n for f in members], float)
+        means, covs = np.stack([f.mean for f in members]), np.stack([f.cov for f in members])
+        return on_floor(means, covs, n, floor, self.floor_config)
 
     def observation(self, source: int) -> tuple[int, FeatureVector]:
         """A stored observation (a ``FeatureVector.sources`` id): its keyframe and camera-frame feature vector."""
@@ -145,6 +187,9 @@ class ObjectMapper:
             track.window = [world(f) for f in track.window]
         if self._prev is not None and self._prev.index >= 0:
             self._prev.pose = np.asarray(poses[self._prev.index])
+        for k, (plane, pose) in list(self._floor_views.items()):
+            self._floor_views[k] = (plane, np.array(poses[k], float) if _has(poses, k) else pose)
+        self._floor_stale = True
         return self.clusterer.recluster()
 
     def state(self) -> dict:
@@ -160,6 +205,7 @@ class ObjectMapper:
             "prev": prev,
             "associations": self.associations,
             "observations": {"keyframe": np.array(self._obs_keyframe, np.int64), "local": self._obs_local},
+            "floor_views": dict(self._floor_views),
         }
 
     def restore(self, state: dict) -> None:
@@ -170,6 +216,8 @@ class ObjectMapper:
         store = state.get("observations", {"keyframe": [], "local": []})
         self._obs_keyframe, self._obs_local = [int(k) for k in store["keyframe"]], list(store["local"])
         self.clusterer.keyframe_of = self._obs_keyframe
+        self._floor_views = dict(state.get("floor_views", {}))  # none in snapshots of earlier versions
+        self._floor_stale = True
 
     def finish(self) -> list[ObjectEllipsoid]:
         """End of sequence: emit every open track window and re-cluster once more."""

@@ -34,7 +34,12 @@ def test_a_state_dir_of_release_0_1_0_resumes_exactly_and_continues(tmp_path):
         assert status["keyframes"] == expected["keyframes"]
         trajectory, _ = node.trajectories()
         assert [repr(float(t)) for t in trajectory.timestamps] == expected["timestamps"]
-        assert [[repr(float(v)) for v in T.ravel()] for T in trajectory.poses] == expected["poses"]
+        # the fixture was written on another CPU: the graph's arithmetic (gtsam, BLAS) may round the last bit of
+        # a pose differently from one CPU to another (seen: 3e-17 on an Intel Xeon against the AMD EPYC that
+        # wrote it), so the poses agree to 1e-12 m, not by repr; the rest of the map is compared exactly
+        poses = np.array([[float(v) for v in T] for T in expected["poses"]]).reshape(-1, 4, 4)
+        assert trajectory.poses.shape == poses.shape
+        assert np.abs(trajectory.poses - poses).max() <= 1e-12
         loops = [
             {k: r[k] for k in ("query_frame", "match_frame", "accepted", "reason")} for r in node.loops_reply()["loops"]
         ]
