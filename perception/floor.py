@@ -28,7 +28,7 @@ FLOOR_CLASSES: frozenset[str] = frozenset(
 class FloorConfig:
     """How the floor is found in keyframes and when furniture is stretched down to it."""
 
-    max_tilt_deg: float = 30.0
+    max_tilt_deg: float = 45.0
     """A level plane's normal lies within this angle of the camera's up axis (-y)."""
     min_below_m: float = 0.4
     """A floor lies at least this far below the camera centre."""
@@ -97,30 +97,33 @@ class Floor:
     support: int
 
     @staticmethod
-    def estimate(planes: np.ndarray, config: FloorConfig) -> Floor | None:
-        """The floor from world-frame level planes (N, 4) of many keyframes: the lowest height that at least
-        ``min_keyframes`` of them, and ``min_support`` of the most any height has, share within ``agree_m``
-        (tables and seats lie higher), None before that."""
-        if len(planes) < config.min_keyframes:
+    def estimate(normals: np.ndarray, feet: np.ndarray, config: FloorConfig) -> Floor | None:
+        """The floor from the level planes of many keyframes, each given by its world-frame unit normal (N, 3)
+        and the point of it under the camera that saw it (N, 3): the lowest height (along the planes' mean
+        normal) that at least ``min_keyframes`` of them, and ``min_support`` of the most any height has, share
+        within ``agree_m`` (tables and seats lie higher), None before that. Heights are those of points, not
+        planes' offsets, so the estimate turns and moves with the world."""
+        if len(normals) < config.min_keyframes:
             return None
-        normals = planes[:, :3] / np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
-        up = np.median(normals, axis=0)
-        up /= np.linalg.norm(up)
-        heights = np.sort(-planes[:, 3] / np.linalg.norm(planes[:, :3], axis=1))
-        # the lowest height with enough planes within agree_m above it
-        counts = np.searchsorted(heights, heights + config.agree_m, side="right") - np.arange(len(heights))
+        up = normals.mean(axis=0)
+        heights = feet @ (up / np.linalg.norm(up))
+        order = np.argsort(heights, kind="stable")
+        ranked = heights[order]
+        # for each plane, how many lie within agree_m above it: the lowest with enough is the floor
+        counts = np.searchsorted(ranked, ranked + config.agree_m, side="right") - np.arange(len(ranked))
         lowest = np.flatnonzero(counts >= max(config.min_keyframes, config.min_support * counts.max()))
         if len(lowest) == 0:
             return None
-        start = heights[lowest[0]]
-        floor = heights[(heights >= start) & (heights <= start + config.agree_m)]
-        return Floor(up, float(np.median(floor)), len(floor))
+        on = (heights >= ranked[lowest[0]]) & (heights <= ranked[lowest[0]] + config.agree_m)
+        up = normals[on].mean(axis=0)
+        up /= np.linalg.norm(up)
+        return Floor(up, float(np.median(feet[on] @ up)), int(on.sum()))
 
 
-def world_plane(plane: np.ndarray, T_wc: np.ndarray) -> np.ndarray:
-    """A camera-frame plane ``(n, d)`` in the world frame of the camera-to-world pose ``T_wc``."""
-    n = T_wc[:3, :3] @ plane[:3]
-    return np.r_[n, plane[3] - n @ T_wc[:3, 3]]
+def world_floor_view(plane: np.ndarray, T_wc: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A camera-frame level plane ``(n, d)`` (unit n) as the world-frame normal and the plane's point under the
+    camera of the camera-to-world pose ``T_wc``."""
+    return T_wc[:3, :3] @ plane[:3], T_wc[:3, :3] @ (-plane[3] * plane[:3]) + T_wc[:3, 3]
 
 
 def on_floor(

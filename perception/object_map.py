@@ -8,17 +8,16 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from graph.geometry import inverse
+from perception.amodal import cut_by_border, detection_feature
 from perception.camera import Intrinsics
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
 from perception.features import (
     FeatureConfig,
     FeatureVector,
-    cut_by_border,
-    detection_feature,
     merge_features,
     transform_feature,
 )
-from perception.floor import FLOOR_CLASSES, Floor, FloorConfig, level_plane, on_floor, world_plane
+from perception.floor import FLOOR_CLASSES, Floor, FloorConfig, level_plane, on_floor, world_floor_view
 from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
 from perception.tracks import Tracker
@@ -103,12 +102,15 @@ class ObjectMapper:
         ids = self.tracker.update(index, [d.label for d in detections], pairs)
         h, w = depth_m.shape[:2]
         whole = [not any(cut_by_border(d.box, w, h)) for d in detections]
+        plane = level_plane(depth_m, K, self.floor_config)
+        up = self._camera_up(pose, plane)
         local = [
-            _weighed(detection_feature(depth_m, K, d.box, d.label, t, self.features), inside, self.features.cut_weight)
+            _weighed(
+                detection_feature(depth_m, K, d.box, d.label, t, self.features, up), inside, self.features.cut_weight
+            )
             for d, t, inside in zip(detections, ids, whole, strict=True)
         ]
         obs = [None if f is None else transform_feature(self._store(index, f), pose) for f in local]
-        plane = level_plane(depth_m, K, self.floor_config)
         if plane is not None:
             self._floor_views[index] = (plane, np.array(pose, float))
             while len(self._floor_views) > MAX_FLOOR_VIEWS:
@@ -124,12 +126,21 @@ class ObjectMapper:
         self._prev = _Keyframe(detections, depth_m, pose, index)
         return self.clusterer.step(obs, [self.tracker.associated(t) for t in ids])
 
+    def _camera_up(self, pose: np.ndarray, plane: np.ndarray | None) -> np.ndarray | None:
+        """The world's up in the camera frame of ``pose``: the floor's, else this keyframe's level plane's, else
+        None (unknown: views are completed along their rays as they are)."""
+        floor = self.floor
+        if floor is not None:
+            return np.asarray(pose)[:3, :3].T @ floor.up
+        return None if plane is None else plane[:3] / np.linalg.norm(plane[:3])
+
     @property
     def floor(self) -> Floor | None:
         """The floor the keyframes agree on (``perception.floor``), None until ``FloorConfig.min_keyframes`` do."""
         if self._floor_stale:
-            planes = [world_plane(p, T) for p, T in self._floor_views.values()]
-            self._floor = Floor.estimate(np.array(planes).reshape(-1, 4), self.floor_config)
+            views = [world_floor_view(p, T) for p, T in self._floor_views.values()]
+            normals, feet = (np.array([v[k] for v in views]).reshape(-1, 3) for k in (0, 1))
+            self._floor = Floor.estimate(normals, feet, self.floor_config)
             self._floor_stale = False
         return self._floor
 

@@ -8,8 +8,10 @@ room), the floor is found from the keyframes and the chair reaches down to it.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
-from perception.floor import Floor, FloorConfig, level_plane, on_floor, world_plane
+from perception.amodal import vertical_extent
+from perception.floor import Floor, FloorConfig, level_plane, on_floor, world_floor_view
 from perception.frame import Detection
 from perception.object_map import ObjectMapper
 from sources.base import ObjectTruth
@@ -43,19 +45,27 @@ def test_the_floor_of_a_rendered_view_is_found_in_its_lower_half() -> None:
     r = Renderer(surfaces([TABLE, CUP, CHAIR]), K, W, H).render(pose)
     plane = level_plane(np.where(r.depth > 0, r.depth, np.nan).astype(np.float32), K, FloorConfig())
     assert plane is not None
-    world = world_plane(plane, pose)
-    assert np.degrees(np.arccos(world[2] / np.linalg.norm(world[:3]))) < 1.0  # up is world z
-    assert abs(world[3]) < 0.01  # the floor is z = 0
+    normal, foot = world_floor_view(plane, pose)
+    assert np.degrees(np.arccos(normal[2])) < 1.0  # up is world z
+    assert abs(foot[2]) < 0.01  # the floor is z = 0
+    assert np.allclose(foot[:2], pose[:2, 3], atol=0.02)  # under the camera
 
 
 def test_the_floor_is_the_lowest_height_many_keyframes_agree_on() -> None:
-    up = np.array([0.0, 0.0, 1.0])
-    table = [np.r_[up, -0.75]] * 30  # table tops fill more images than the floor
-    floor = [np.r_[up, 0.002 * k] for k in range(-4, 5)]
-    noise = [np.r_[up, 0.3], np.r_[up, 0.31]]  # two planes below the floor: too few to be it
-    estimate = Floor.estimate(np.array(table + floor + noise), FloorConfig())
-    assert estimate is not None and abs(estimate.height) < 0.005 and estimate.support == len(floor)
-    assert Floor.estimate(np.array(table[:4]), FloorConfig()) is None  # fewer than min_keyframes
+    rng = np.random.default_rng(0)
+    heights = [0.75] * 30 + [0.002 * k for k in range(-4, 5)] + [-0.3, -0.31]
+    # table tops fill more images than the floor; two planes below the floor are too few to be it
+    feet = np.column_stack([rng.uniform(0, 5, (len(heights), 2)), heights])
+    normals = np.tile([0.0, 0.0, 1.0], (len(heights), 1))
+    estimate = Floor.estimate(normals, feet, FloorConfig())
+    assert estimate is not None and abs(estimate.height) < 0.005 and estimate.support == 9
+    assert Floor.estimate(normals[:4], feet[:4], FloorConfig()) is None  # fewer than min_keyframes
+    # the same planes in a turned and moved world: the same floor, turned and moved
+    R = Rotation.from_rotvec([0.3, -0.2, 1.0]).as_matrix()
+    t = np.array([2.0, -1.0, 0.5])
+    moved = Floor.estimate(normals @ R.T, feet @ R.T + t, FloorConfig())
+    assert moved is not None and np.allclose(moved.up, R @ estimate.up)
+    assert np.isclose(moved.height, estimate.height + moved.up @ t)
 
 
 def test_a_chair_whose_legs_every_view_cuts_off_reaches_down_to_the_floor() -> None:
@@ -84,3 +94,33 @@ def test_an_object_far_above_the_floor_is_not_stretched_to_it() -> None:
     assert stretched is not None
     mean, new_cov = stretched
     assert np.isclose(mean[2], 0.375) and np.isclose(new_cov[2, 2], 0.75**2 / 12.0)
+
+
+def test_a_view_s_vertical_extent_is_its_points_span_down_to_the_surface_it_stands_on() -> None:
+    up = np.array([0.0, 0.0, 1.0])
+    # a box seen from above: its top face holds most points (at 0.9), its front face the rest (0.76-0.9)
+    heights = np.r_[np.full(300, 0.9), np.linspace(0.76, 0.9, 100)]
+    table = np.r_[up, -0.75]  # the plane z = 0.75 under it; the support removal took the 1 cm band above it
+    # percentiles (2nd, 98th), not moments: the mean and sqrt(3) std would span 0.82-0.94
+    assert np.allclose(vertical_extent(heights, np.zeros(3), up, None), (0.76, 0.9), atol=0.012)
+    assert np.allclose(vertical_extent(heights, np.zeros(3), up, table), (0.75, 0.9), atol=0.001)
+    # a plane far below the lowest point is not what the object stands on
+    assert np.allclose(vertical_extent(heights, np.zeros(3), up, np.r_[up, 0.0]), (0.76, 0.9), atol=0.012)
+
+
+def test_a_cup_seen_from_above_is_centred_at_its_true_height() -> None:
+    # 1.2 m from the cup, 0.75 m above its middle, looking down at it on a 90 degree arc: the camera sees its
+    # rim and near side; completed along the tilted ray its centre went down and towards the camera together
+    poses = looking_at(CUP.center, np.radians(np.linspace(-45.0, 45.0, 12)), 1.2, 1.55)
+    renderer = Renderer(surfaces([TABLE, CUP]), K, W, H)
+    mapper = ObjectMapper()
+    for i, pose in enumerate(poses):
+        r = renderer.render(pose)
+        depth = np.where(r.depth > 0, r.depth, np.nan).astype(np.float32)
+        mapper.add_keyframe(i, [Detection("cup", 0.9, mask_box(r.ids == CUP.id))], depth, K, pose)
+    cups = mapper.finish()
+    assert mapper.floor is not None  # the views' level planes gave the world's up
+    assert len(cups) == 1
+    error = cups[0].mean - np.asarray(CUP.center)
+    assert abs(error[2]) < 0.005, error
+    assert np.linalg.norm(error) < 0.02, error

@@ -9,11 +9,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from graph.geometry import inverse
+from perception.amodal import detection_feature
 from perception.camera import Intrinsics
 from perception.features import (
     FeatureConfig,
     backproject_detection,
-    detection_feature,
     dominant_depth_mask,
     feature_from_points,
     object_points,

@@ -1,0 +1,192 @@
+"""Amodal completion of a detection's view: where the unseen part of an object lies (SPEC 6.5, issue 24).
+
+A depth camera sees the near side of an object, often only part of it (the image border, the sensor's range and
+occluders cut it). ``detection_feature`` turns a detection into its camera-frame feature vector with the
+object's centre and extent completed behind the visible surface (``complete_amodal``), bounded by the free depth
+behind it (``room_behind``), and, where the world's up is known, completed level with the floor and measured
+vertically by its points' span down to the surface it stands on (``vertical_extent``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt, uniform_filter
+
+from perception.camera import Intrinsics, pixels_to_points
+from perception.features import (
+    Box,
+    FeatureConfig,
+    FeatureVector,
+    depth_points,
+    feature_from_points,
+    object_pixels,
+    ring_windows,
+    split_support,
+    stride_subsample,
+)
+
+
+def room_behind(
+    depth_m: np.ndarray, box: Box, rows: np.ndarray, cols: np.ndarray, ring: float = 0.15, step: int = 4
+) -> float:
+    """Free depth behind an object's visible surface (its pixels ``rows``, ``cols``): the 90th percentile of how
+    far the pixels of a ring around its box (``ring`` of the box size wide) lie behind the nearest object pixel,
+    counting only those behind it (a floor or table beside the object lies partly behind it too); inf when none
+    are. Measured against the nearest pixel of the surface rather than its nearest point, so a screen on a wall
+    seen from below or at a slant is bounded by the wall just behind it. Pixels on a ``step`` grid.
+    """
+    windows = ring_windows(depth_m.shape, box, ring)
+    if windows is None or len(rows) == 0:
+        return np.inf
+    (y1, y2, x1, x2), inner = windows
+    patch = depth_m[y1:y2:step, x1:x2:step].copy()
+    surface = np.full(patch.shape, np.nan, np.float32)
+    some = stride_subsample(len(rows), surface.size)  # enough to mark most cells the object covers
+    r, c = rows[some], cols[some]
+    surface[(r - y1) // step, (c - x1) // step] = depth_m[r, c]
+    # the first grid cell at or after each edge of the box
+    iy1, iy2, ix1, ix2 = (-(-(v - o) // step) for v, o in zip(inner, (y1, y1, x1, x1), strict=True))
+    patch[iy1:iy2, ix1:ix2] = np.nan  # the ring only
+    is_surface = np.isfinite(surface)
+    if not is_surface.any():
+        return np.inf
+    around = np.isfinite(patch)
+    _, (ny, nx) = distance_transform_edt(~is_surface, return_indices=True)  # each cell's nearest surface cell
+    gap = patch[around] - surface[ny[around], nx[around]]
+    behind = gap[gap > 0.01]
+    return float(np.percentile(behind, 90)) if behind.size else np.inf
+
+
+BORDER_PX = 4
+"""A box within this many pixels of the image border is cut by it."""
+
+
+def cut_by_border(box: Box, width: int, height: int) -> tuple[bool, bool]:
+    """Whether the image border cuts ``box`` on the left or right, and at the top or bottom."""
+    x1, y1, x2, y2 = box
+    return (x1 < BORDER_PX or x2 > width - BORDER_PX), (y1 < BORDER_PX or y2 > height - BORDER_PX)
+
+
+def complete_amodal(
+    points: np.ndarray,
+    label: str,
+    track_id: int,
+    shift: float,
+    room: float = np.inf,
+    cut_sideways: bool = False,
+    reference: np.ndarray | None = None,
+    up: np.ndarray | None = None,
+    support: np.ndarray | None = None,
+) -> FeatureVector | None:
+    """A camera-frame view's feature vector completed behind its visible surface.
+
+    A depth camera sees the near side of an object. Assuming it is about as deep as it is wide (horizontally,
+    camera x), its depth is sqrt(12) times the horizontal standard deviation of the points, bounded by how deep
+    the visible surface already reaches along the viewing ray (10th to 90th percentile) plus the free depth
+    ``room`` behind it (a screen on a wall cannot extend into the wall). Along the viewing ray the centre lies
+    ``shift`` standard deviations behind the near side (10th percentile), at most half the depth, and the spread
+    is that of a uniform extent of that depth; across the ray the points' own statistics stay. Pixels of a
+    supporting surface that join the object's depth segment then no longer stretch it.
+
+    ``cut_sideways``: the image border cuts the box on the left or right, so the points' horizontal spread
+    understates the object's width; the depth prior then takes the larger of the horizontal and vertical
+    spreads (still bounded by the surface's reach plus the free depth behind it).
+
+    ``reference``: the same points (same order) with less depth noise, whose spread along the ray gives the near
+    and far sides (``detection_feature`` passes them with locally averaged depth); default ``points``.
+
+    ``up``: the world's up in the camera frame (``ObjectMapper``: the floor's normal). The completion then runs
+    along the level part of the ray (a camera looking down at a chair sees its top and front: completing along
+    the slanted ray moved its centre down and towards the camera together), and the vertical extent is the
+    points' (``vertical_extent``: percentiles, not moments, since the top face of an object seen from above
+    holds many points at one height; down to the ``support`` plane ``(n, d)`` it stands on, when given).
+    """
+    f = feature_from_points(points, label, track_id)
+    if f is None:
+        return None
+    ray = f.mean / np.linalg.norm(f.mean)
+    level = False
+    if up is not None:  # complete along the level part of the ray: the object's unseen back is level with it
+        flat = ray - (ray @ up) * up
+        if np.linalg.norm(flat) > 0.3:  # not looking (nearly) straight down or up at it
+            ray, level = flat / np.linalg.norm(flat), True
+    along = (points if reference is None else reference) @ ray
+    near, far = np.percentile(along, [10, 90])
+    sx = float(np.sqrt(f.cov[0, 0] if not cut_sideways else max(f.cov[0, 0], f.cov[1, 1])))
+    depth = min(np.sqrt(12.0) * sx, float(far - near) + room)
+    centre = float(near) + min(shift * sx, depth / 2.0)
+    P = np.eye(3) - np.outer(ray, ray)
+    mean = P @ f.mean + centre * ray
+    cov = P @ f.cov @ P + depth**2 / 12.0 * np.outer(ray, ray)
+    if level:
+        assert up is not None
+        heights = (points if reference is None else reference) @ up
+        bottom, top = vertical_extent(heights, mean - (mean @ up) * up, up, support)
+        mean = mean + ((bottom + top) / 2.0 - mean @ up) * up
+        Q = np.eye(3) - np.outer(up, up)
+        cov = Q @ cov @ Q + (top - bottom) ** 2 / 12.0 * np.outer(up, up)
+    return FeatureVector(mean, cov, f.n, label, track_id, f.sources)
+
+
+SUPPORT_GAP_M = 0.05
+"""An object's lowest visible point within this of its support plane stands on it (``vertical_extent``)."""
+
+
+def vertical_extent(
+    heights: np.ndarray, level_point: np.ndarray, up: np.ndarray, support: np.ndarray | None
+) -> tuple[float, float]:
+    """Bottom and top (along ``up``) of a view's object from its points' ``heights``: their 2nd and 98th
+    percentiles, the bottom moved down to the support plane ``(n, d)`` under ``level_point`` when the lowest
+    point lies within ``SUPPORT_GAP_M`` of it (the band the support removal took off the object's foot)."""
+    bottom, top = (float(v) for v in np.percentile(heights, [2, 98]))
+    if support is not None and abs(support[:3] @ up) > 0.9:
+        base = -(support[3] + support[:3] @ level_point) / (support[:3] @ up)
+        if bottom - SUPPORT_GAP_M <= base < bottom:
+            bottom = float(base)
+    return bottom, top
+
+
+def local_mean_depth(depth_m: np.ndarray, rows: np.ndarray, cols: np.ndarray, radius: int) -> np.ndarray:
+    """Depth (N, float64) at each of the pixels (rows, cols) averaged over those of them within ``radius`` steps
+    of their grid (a box's pixels lie on a regular grid, ``box_pixels``): inside a surface (2r+1)^2 pixels, so
+    the noise's standard deviation is 2r+1 times smaller; fewer at its rim. ``radius`` 0: the depth itself."""
+    z = depth_m[rows, cols].astype(np.float64)
+    if radius <= 0 or len(rows) < 2:
+        return z
+    r0, c0 = int(rows.min()), int(cols.min())
+    step = int(np.gcd.reduce(np.r_[rows - r0, cols - c0])) or 1
+    gr, gc = (rows - r0) // step, (cols - c0) // step
+    total, count = np.zeros((2, int(gr.max()) + 1, int(gc.max()) + 1))
+    total[gr, gc], count[gr, gc] = z, 1.0
+    size = 2 * radius + 1  # the filters' common normalisation cancels in the ratio
+    return uniform_filter(total, size, mode="constant")[gr, gc] / uniform_filter(count, size, mode="constant")[gr, gc]
+
+
+def detection_feature(
+    depth_m: np.ndarray,
+    K: Intrinsics,
+    box: Box,
+    label: str,
+    track_id: int,
+    config: FeatureConfig,
+    up: np.ndarray | None = None,
+) -> FeatureVector | None:
+    """The camera-frame feature vector of a detection (amodally completed when configured, its near and far sides
+    on locally averaged depth: ``FeatureConfig.near_radius``); None when too few points."""
+    rows, cols, support = split_support(depth_m, K, box, *object_pixels(depth_m, box, config), config)
+    idx = stride_subsample(len(rows), config.max_points)
+    points = depth_points(depth_m, K, rows[idx], cols[idx])
+    if config.amodal is None or len(points) < 3:
+        return feature_from_points(points, label, track_id)
+    smooth = local_mean_depth(depth_m, rows, cols, config.near_radius)[idx]
+    return complete_amodal(
+        points,
+        label,
+        track_id,
+        config.amodal,
+        room_behind(depth_m, box, rows, cols),
+        cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0],
+        reference=pixels_to_points(cols[idx], rows[idx], smooth, K),
+        up=up,
+        support=support,
+    )
