@@ -223,9 +223,27 @@ def merge_track_runs(features: Sequence[FeatureVector], run: int) -> list[Featur
     ]
 
 
+def robust_gaussian(
+    means: np.ndarray, covs: np.ndarray, weights: np.ndarray, huber_m: float = 0.1, iterations: int = 20
+) -> tuple[np.ndarray, np.ndarray]:
+    """An object's centre and covariance from its views' Gaussians (N, 3) / (N, 3, 3) with ``weights`` (N,):
+    the weighted geometric median of their means (Weiszfeld), and their pooled second moment about it with the
+    views farther than ``huber_m`` from it down-weighted (Huber). A few views of another object (a segment
+    that caught the neighbouring chair, a track NPDA carried over to it) then pull the object little, where
+    they pull the pooled mean (``merge_features``) in proportion to their number."""
+    n = np.asarray(weights, float)
+    centre = np.average(means, axis=0, weights=n)
+    for _ in range(iterations):
+        centre = np.average(means, axis=0, weights=n / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-3))
+    w = n * np.minimum(1.0, huber_m / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-9))
+    w /= w.sum()
+    d = means - centre
+    return centre, np.einsum("n,nij->ij", w, covs) + (d.T * w) @ d
+
+
 Locate = Callable[[Sequence[FeatureVector]], "tuple[np.ndarray, np.ndarray] | None"]
-"""An object's centre and covariance from its cluster's members (``ObjectMapper``: stretched to the floor), or
-None to keep the pooled Gaussian's."""
+"""An object's centre and covariance from its cluster's members (``ObjectMapper``: ``robust_gaussian``, stretched
+to the floor), or None to keep the pooled Gaussian's."""
 
 
 def ellipsoid(

@@ -127,18 +127,20 @@ def world_floor_view(plane: np.ndarray, T_wc: np.ndarray) -> tuple[np.ndarray, n
 
 
 def on_floor(
-    means: np.ndarray, covs: np.ndarray, weights: np.ndarray, floor: Floor, config: FloorConfig
+    mean: np.ndarray,
+    cov: np.ndarray,
+    views: tuple[np.ndarray, np.ndarray, np.ndarray],
+    floor: Floor,
+    config: FloorConfig,
 ) -> tuple[np.ndarray, np.ndarray] | None:
-    """A floor-standing object's Gaussian from its views' (N, 3) means and (N, 3, 3) covariances (world frame),
-    stretched down to the floor: its top is the weighted median of the views' tops (``sqrt(3)`` standard
-    deviations above a view's mean along ``up``, as for a uniform extent), its bottom the floor; across ``up``
-    the views' pooled Gaussian stays. None when the pooled visible bottom is not within ``max_gap_m`` above
-    the floor (nor ``agree_m`` below it)."""
+    """A floor-standing object's Gaussian ``mean``, ``cov`` (world frame) stretched down to the floor: its bottom
+    moves to the floor, its top is the weighted median of its ``views``' tops (their (N, 3) means, (N, 3, 3)
+    covariances and (N,) weights; a view's top lies ``sqrt(3)`` standard deviations above its mean along
+    ``up``, as for a uniform extent); across ``up`` the Gaussian stays. None when its visible bottom is not within
+    ``max_gap_m`` above the floor (nor ``agree_m`` below it)."""
     u = floor.up
+    means, covs, weights = views
     w = np.asarray(weights, float) / float(np.sum(weights))
-    mean = w @ means
-    d = means - mean
-    cov = np.einsum("n,nij->ij", w, covs) + (d.T * w) @ d
     bottom = float(u @ mean) - np.sqrt(3.0 * max(float(u @ cov @ u), 0.0)) - floor.height
     tops = means @ u + np.sqrt(3.0 * np.clip(np.einsum("i,nij,j->n", u, covs, u), 0.0, None)) - floor.height
     order = np.argsort(tops)

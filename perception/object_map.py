@@ -10,7 +10,7 @@ import numpy as np
 from graph.geometry import inverse
 from perception.amodal import cut_by_border, detection_feature
 from perception.camera import Intrinsics
-from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
+from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid, robust_gaussian
 from perception.features import (
     FeatureConfig,
     FeatureVector,
@@ -145,14 +145,15 @@ class ObjectMapper:
         return self._floor
 
     def _locate(self, members: Sequence[FeatureVector]) -> tuple[np.ndarray, np.ndarray] | None:
-        """A floor-standing object reaches down to the floor (``perception.floor.on_floor``); None keeps the
-        cluster's pooled Gaussian."""
-        floor = self.floor
-        if floor is None or not members or members[0].label not in FLOOR_CLASSES:
-            return None
+        """An object from its views: robust to the few that are another object's (``robust_gaussian``), and
+        reaching down to the floor when it stands on it (``perception.floor.on_floor``)."""
         n = np.array([f.n for f in members], float)
         means, covs = np.stack([f.mean for f in members]), np.stack([f.cov for f in members])
-        return on_floor(means, covs, n, floor, self.floor_config)
+        mean, cov = robust_gaussian(means, covs, n)
+        floor = self.floor
+        if floor is not None and members[0].label in FLOOR_CLASSES:
+            return on_floor(mean, cov, (means, covs, n), floor, self.floor_config) or (mean, cov)
+        return mean, cov
 
     def observation(self, source: int) -> tuple[int, FeatureVector]:
         """A stored observation (a ``FeatureVector.sources`` id): its keyframe and camera-frame feature vector."""

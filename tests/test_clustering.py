@@ -14,6 +14,7 @@ from perception.clustering import (
     ellipsoid,
     merge_overlapping,
     merge_track_runs,
+    robust_gaussian,
 )
 from perception.features import FeatureVector, merge_features
 
@@ -152,3 +153,24 @@ def test_the_mapper_gives_the_clusterer_the_keyframe_of_every_observation() -> N
     restored.restore(mapper.state())
     restored.add_keyframe(6, chairs, depth, K, np.eye(4))  # the restored store keeps reaching the clusterer
     assert list(restored.clusterer.keyframe_of) == stored(restored) == [0, 0, 3, 3, 6, 6]
+
+
+def test_an_object_s_centre_is_robust_to_a_few_views_of_its_neighbour() -> None:
+    # 40 views of a chair at the origin (2 cm of scatter) and 10 of the chair 0.5 m beside it that a track
+    # carried over: the pooled mean moves 10 cm towards the neighbour, the robust centre stays within 2 cm
+    rng = np.random.default_rng(0)
+    chair = rng.normal(0.0, 0.02, (40, 3))
+    neighbour = np.array([0.5, 0.0, 0.0]) + rng.normal(0.0, 0.02, (10, 3))
+    means = np.vstack([chair, neighbour])
+    covs = np.tile(np.diag([0.12**2, 0.12**2, 0.25**2]), (len(means), 1, 1))
+    weights = np.full(len(means), 100.0)
+    pooled = merge_features([FeatureVector(m, c, 100, "chair") for m, c in zip(means, covs, strict=True)])
+    assert pooled.mean[0] > 0.08
+    centre, cov = robust_gaussian(means, covs, weights)
+    assert np.linalg.norm(centre) < 0.02
+    # the neighbour's views widen the object less than in the pooled moments
+    assert cov[0, 0] < pooled.cov[0, 0]
+    # views that all agree: the robust Gaussian is the pooled one
+    same, same_cov = robust_gaussian(chair, covs[:40], weights[:40])
+    agree = merge_features([FeatureVector(m, c, 100, "chair") for m, c in zip(chair, covs[:40], strict=True)])
+    assert np.allclose(same, agree.mean, atol=0.005) and np.allclose(same_cov, agree.cov, atol=1e-4)

@@ -87,10 +87,10 @@ def test_an_object_far_above_the_floor_is_not_stretched_to_it() -> None:
     floor = Floor(np.array([0.0, 0.0, 1.0]), 0.0, 10)
     shelf = ObjectTruth(9, "suitcase", (0.0, 0.0, 2.0), (0.4, 0.2, 0.5), 0.0)
     cov = np.diag([0.4**2, 0.2**2, 0.5**2]) / 12.0
-    means = np.array([shelf.center, shelf.center])
-    assert on_floor(means, np.stack([cov, cov]), np.ones(2), floor, FloorConfig()) is None
-    low = means - [0.0, 0.0, 1.5]  # a suitcase whose visible part ends 0.25 m above the floor
-    stretched = on_floor(low, np.stack([cov, cov]), np.ones(2), floor, FloorConfig())
+    views = (np.array([shelf.center, shelf.center]), np.stack([cov, cov]), np.ones(2))
+    assert on_floor(np.asarray(shelf.center), cov, views, floor, FloorConfig()) is None
+    low = np.asarray(shelf.center) - [0.0, 0.0, 1.5]  # a suitcase whose visible part ends 0.25 m above the floor
+    stretched = on_floor(low, cov, (views[0] - [0.0, 0.0, 1.5], views[1], views[2]), floor, FloorConfig())
     assert stretched is not None
     mean, new_cov = stretched
     assert np.isclose(mean[2], 0.375) and np.isclose(new_cov[2, 2], 0.75**2 / 12.0)
