@@ -128,7 +128,7 @@ def truth_odometry_ate(spec: str, out: Path) -> float:
 def default_datasets() -> list[str]:
     """The real 7-Scenes sequence (when ../shared/data is present) and three synthetic seeds."""
     specs = []
-    real = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "7scenes_redkitchen_1000"
+    real = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "7scenes_redkitchen_1000"  # beside the repo
     if real.is_dir():
         specs.append(str(real))
     return specs + [f"synthetic:room?seed={s}&frames=300" for s in (0, 1, 2)]

@@ -9,11 +9,13 @@ import numpy as np
 import pytest
 
 from bench.calibrate import check_loops, check_reference, frame_pairs
+from bench.slam import default_datasets
 from evaluation.reference_check import PairCheck, depth_residual, repaired
 from evaluation.trajectory_metrics import trajectory_error
 from graph.geometry import pose_to_tum, relative
 from perception.frame import Intrinsics
 from sources import open_dataset, truth_per_frame
+from tests.conftest import REDKITCHEN, requires_redkitchen
 
 SCENE = "synthetic:room?seed=0&frames=60"
 GLITCH_AT = 9  # the reference's step 9 -> 10 is wrong
@@ -164,3 +166,11 @@ def test_a_reference_motion_that_leaves_the_image_is_refuted_when_the_depth_find
     assert lost.refuted(0.005)
     assert not PairCheck(0, 1, np.eye(4), None, nan, nan, 0.01, nan, nan).refuted(0.005)
     assert not PairCheck(0, 1, np.eye(4), np.eye(4), 0.008, 0.004, 0.01, 0.0, 0.0).refuted(0.005)
+
+
+@requires_redkitchen
+def test_the_slam_benchmarks_run_the_real_sequence_beside_the_repository_by_default() -> None:
+    # bench odometry / loops / landmarks without --dataset: the 7-Scenes kitchen first, then the synthetic seeds
+    # (the path was once taken one directory too high, and the real rows silently went missing)
+    specs = default_datasets()
+    assert specs[0] == str(REDKITCHEN) and len(specs) == 4
