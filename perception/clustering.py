@@ -223,15 +223,32 @@ def merge_track_runs(features: Sequence[FeatureVector], run: int) -> list[Featur
     ]
 
 
+PARTS_STD_M = 0.35
+"""Views whose own extent exceeds this standard deviation (a uniform extent of 1.2 m: tables, couches, beds) are
+parts of a large object rather than noisy copies of a whole one (``robust_gaussian``)."""
+
+
 def robust_gaussian(
-    means: np.ndarray, covs: np.ndarray, weights: np.ndarray, huber_m: float = 0.1, iterations: int = 20
+    means: np.ndarray,
+    covs: np.ndarray,
+    weights: np.ndarray,
+    huber_m: float = 0.1,
+    iterations: int = 20,
+    parts_std_m: float = PARTS_STD_M,
 ) -> tuple[np.ndarray, np.ndarray]:
     """An object's centre and covariance from its views' Gaussians (N, 3) / (N, 3, 3) with ``weights`` (N,):
     the weighted geometric median of their means (Weiszfeld), and their pooled second moment about it with the
     views farther than ``huber_m`` from it down-weighted (Huber). A few views of another object (a segment
     that caught the neighbouring chair, a track NPDA carried over to it) then pull the object little, where
-    they pull the pooled mean (``merge_features``) in proportion to their number."""
+    they pull the pooled mean (``merge_features``) in proportion to their number. A large object (the views'
+    mean covariance wider than ``parts_std_m``) is seen in parts, each view a different one: its views are pooled
+    as they are, since the median of parts is the part seen most (a kitchen table 0.70 m off, 0.48 m pooled)."""
     n = np.asarray(weights, float)
+    if float(np.linalg.eigvalsh(np.einsum("n,nij->ij", n / n.sum(), covs))[-1]) > parts_std_m**2:
+        w = n / n.sum()
+        mean = w @ means
+        d = means - mean
+        return mean, np.einsum("n,nij->ij", w, covs) + (d.T * w) @ d
     centre = np.average(means, axis=0, weights=n)
     for _ in range(iterations):
         centre = np.average(means, axis=0, weights=n / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-3))

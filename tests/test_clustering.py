@@ -174,3 +174,16 @@ def test_an_object_s_centre_is_robust_to_a_few_views_of_its_neighbour() -> None:
     same, same_cov = robust_gaussian(chair, covs[:40], weights[:40])
     agree = merge_features([FeatureVector(m, c, 100, "chair") for m, c in zip(chair, covs[:40], strict=True)])
     assert np.allclose(same, agree.mean, atol=0.005) and np.allclose(same_cov, agree.cov, atol=1e-4)
+
+
+def test_a_large_object_s_views_are_parts_and_are_pooled_as_they_are() -> None:
+    # a 2 m table seen in parts: 30 views of its left half, 10 of its right; the median of parts would follow the
+    # left half, the pooled moments keep the whole table
+    left = np.tile([-0.5, 0.0, 0.7], (30, 1))
+    right = np.tile([0.5, 0.0, 0.7], (10, 1))
+    means = np.vstack([left, right])
+    covs = np.tile(np.diag([0.45**2, 0.3**2, 0.01]), (len(means), 1, 1))
+    weights = np.full(len(means), 100.0)
+    centre, cov = robust_gaussian(means, covs, weights)
+    pooled = merge_features([FeatureVector(m, c, 100, "dining table") for m, c in zip(means, covs, strict=True)])
+    assert np.allclose(centre, pooled.mean) and np.allclose(cov, pooled.cov)
