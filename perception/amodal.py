@@ -67,6 +67,11 @@ def cut_by_border(box: Box, width: int, height: int) -> tuple[bool, bool]:
     return (x1 < BORDER_PX or x2 > width - BORDER_PX), (y1 < BORDER_PX or y2 > height - BORDER_PX)
 
 
+def cut_vertically(box: Box, height: int) -> tuple[bool, bool]:
+    """Whether the image's top edge and its bottom edge cut ``box``."""
+    return box[1] < BORDER_PX, box[3] > height - BORDER_PX
+
+
 def complete_amodal(
     points: np.ndarray,
     label: str,

@@ -147,7 +147,42 @@ def on_floor(
     top = float(tops[order][np.searchsorted(np.cumsum(w[order]), 0.5)])
     if not -config.agree_m <= bottom <= config.max_gap_m or top <= 0.0:
         return None
-    P = np.eye(3) - np.outer(u, u)
-    new_mean = mean + (floor.height + top / 2.0 - float(u @ mean)) * u
-    new_cov = P @ cov @ P + top**2 / 12.0 * np.outer(u, u)
-    return new_mean, new_cov
+    return with_span(mean, cov, u, floor.height, floor.height + top)
+
+
+def with_span(
+    mean: np.ndarray, cov: np.ndarray, up: np.ndarray, bottom: float, top: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """A Gaussian whose extent along ``up`` is the uniform one from height ``bottom`` to ``top``; across ``up`` it
+    stays (cross terms with ``up`` dropped)."""
+    P = np.eye(3) - np.outer(up, up)
+    new_mean = mean + ((bottom + top) / 2.0 - float(up @ mean)) * up
+    return new_mean, P @ cov @ P + (top - bottom) ** 2 / 12.0 * np.outer(up, up)
+
+
+def _weighted_quantile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
+    order = np.argsort(values)
+    cumulative = np.cumsum(weights[order]) / weights.sum()
+    return float(values[order][min(int(np.searchsorted(cumulative, q)), len(values) - 1)])
+
+
+def vertical_span(
+    means: np.ndarray, covs: np.ndarray, weights: np.ndarray, up: np.ndarray, cut: np.ndarray, min_views: int = 3
+) -> tuple[float, float] | None:
+    """An object's bottom and top heights along ``up`` from its views (N, 3) means, (N, 3, 3) covariances, (N,)
+    weights and (N, 2) flags: the image's top / bottom edge cut the view's box. A view's top and bottom lie
+    ``sqrt(3)`` standard deviations from its mean; the object's top is the weighted median of the tops of the
+    views whose box the top edge does not cut (a cut view's top is the edge's, below the object's), else, with
+    fewer than ``min_views`` of them, the 90th percentile of all tops; the bottom likewise. None when they cross."""
+    w = np.asarray(weights, float)
+    half = np.sqrt(3.0 * np.clip(np.einsum("i,nij,j->n", up, covs, up), 0.0, None))
+    ends = []
+    for k, (sign, fallback) in enumerate(((1.0, 0.9), (-1.0, 0.1))):
+        heights = means @ up + sign * half
+        seen = ~np.asarray(cut, bool)[:, k]
+        if seen.sum() >= min_views:
+            ends.append(_weighted_quantile(heights[seen], w[seen], 0.5))
+        else:
+            ends.append(_weighted_quantile(heights, w, fallback))
+    top, bottom = ends
+    return (bottom, top) if top > bottom else None

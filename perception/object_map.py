@@ -8,7 +8,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from graph.geometry import inverse
-from perception.amodal import cut_by_border, detection_feature
+from perception.amodal import cut_by_border, cut_vertically, detection_feature
 from perception.camera import Intrinsics
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid, robust_gaussian
 from perception.features import (
@@ -17,7 +17,16 @@ from perception.features import (
     merge_features,
     transform_feature,
 )
-from perception.floor import FLOOR_CLASSES, Floor, FloorConfig, level_plane, on_floor, world_floor_view
+from perception.floor import (
+    FLOOR_CLASSES,
+    Floor,
+    FloorConfig,
+    level_plane,
+    on_floor,
+    vertical_span,
+    with_span,
+    world_floor_view,
+)
 from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
 from perception.tracks import Tracker
@@ -79,6 +88,8 @@ class ObjectMapper:
         self._floor_stale = False
         self.clusterer.locate = self._locate
         self._obs_local: list[FeatureVector] = []
+        self._obs_cut: list[tuple[bool, bool]] = []
+        """Per observation: whether the image's top and bottom edges cut its box (``floor.vertical_span``)."""
         self.last_observations: list[tuple[int, np.ndarray, float]] = []
         """The latest keyframe's (track id, camera-frame centroid, largest std of its points (m)) per detection
         with enough depth whose box the image border does not cut (a cut box measures part of the object)."""
@@ -110,7 +121,10 @@ class ObjectMapper:
             )
             for d, t, inside in zip(detections, ids, whole, strict=True)
         ]
-        obs = [None if f is None else transform_feature(self._store(index, f), pose) for f in local]
+        obs = [
+            None if f is None else transform_feature(self._store(index, f, cut_vertically(d.box, h)), pose)
+            for f, d in zip(local, detections, strict=True)
+        ]
         if plane is not None:
             self._floor_views[index] = (plane, np.array(pose, float))
             while len(self._floor_views) > MAX_FLOOR_VIEWS:
@@ -153,6 +167,11 @@ class ObjectMapper:
         floor = self.floor
         if floor is not None and members[0].label in FLOOR_CLASSES:
             return on_floor(mean, cov, (means, covs, n), floor, self.floor_config) or (mean, cov)
+        if floor is not None and all(f.sources for f in members):
+            cut = np.array([[all(self._obs_cut[x][k] for x in f.sources) for k in (0, 1)] for f in members])
+            span = vertical_span(means, covs, n, floor.up, cut)
+            if span is not None:
+                mean, cov = with_span(mean, cov, floor.up, *span)
         return mean, cov
 
     def observation(self, source: int) -> tuple[int, FeatureVector]:
@@ -164,9 +183,10 @@ class ObjectMapper:
         """How many keyframe observations are stored."""
         return len(self._obs_local)
 
-    def _store(self, keyframe: int, local: FeatureVector) -> FeatureVector:
+    def _store(self, keyframe: int, local: FeatureVector, cut: tuple[bool, bool] = (False, False)) -> FeatureVector:
         """Keep a camera-frame observation; the same vector tagged with its store id."""
         self._obs_keyframe.append(keyframe)
+        self._obs_cut.append(cut)
         self._obs_local.append(
             FeatureVector(local.mean, local.cov, local.n, local.label, local.track_id, (len(self._obs_local),))
         )
@@ -216,7 +236,11 @@ class ObjectMapper:
             "clusterer": self.clusterer.state(),
             "prev": prev,
             "associations": self.associations,
-            "observations": {"keyframe": np.array(self._obs_keyframe, np.int64), "local": self._obs_local},
+            "observations": {
+                "keyframe": np.array(self._obs_keyframe, np.int64),
+                "local": self._obs_local,
+                "cut": np.array(self._obs_cut, bool).reshape(-1, 2),
+            },
             "floor_views": dict(self._floor_views),
         }
 
@@ -227,6 +251,8 @@ class ObjectMapper:
         self.associations = state["associations"]
         store = state.get("observations", {"keyframe": [], "local": []})
         self._obs_keyframe, self._obs_local = [int(k) for k in store["keyframe"]], list(store["local"])
+        cut = store.get("cut", np.zeros((len(self._obs_local), 2), bool))  # none before 2026-12-03: taken as uncut
+        self._obs_cut = [(bool(t), bool(b)) for t, b in cut]
         self.clusterer.keyframe_of = self._obs_keyframe
         self._floor_views = dict(state.get("floor_views", {}))  # none in snapshots of earlier versions
         self._floor_stale = True

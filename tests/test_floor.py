@@ -11,7 +11,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from perception.amodal import vertical_extent
-from perception.floor import Floor, FloorConfig, level_plane, on_floor, world_floor_view
+from perception.floor import Floor, FloorConfig, level_plane, on_floor, vertical_span, with_span, world_floor_view
 from perception.frame import Detection
 from perception.object_map import ObjectMapper
 from sources.base import ObjectTruth
@@ -124,3 +124,20 @@ def test_a_cup_seen_from_above_is_centred_at_its_true_height() -> None:
     error = cups[0].mean - np.asarray(CUP.center)
     assert abs(error[2]) < 0.005, error
     assert np.linalg.norm(error) < 0.02, error
+
+
+def test_a_wall_screen_whose_top_most_views_cut_off_keeps_the_top_the_others_see() -> None:
+    # a screen from 1.0 to 1.6 m: 8 views cut at the image's top edge see it only up to 1.45 m, 4 see it whole
+    up = np.array([0.0, 0.0, 1.0])
+    cov_whole = np.diag([0.3, 0.001, 0.6**2 / 12.0])
+    cov_cut = np.diag([0.3, 0.001, 0.45**2 / 12.0])
+    means = np.array([[0.0, 0.0, 1.3]] * 4 + [[0.0, 0.0, 1.225]] * 8)
+    covs = np.stack([cov_whole] * 4 + [cov_cut] * 8)
+    cut = np.array([[False, False]] * 4 + [[True, False]] * 8)
+    bottom, top = vertical_span(means, covs, np.ones(12), up, cut)
+    assert np.isclose(bottom, 1.0, atol=0.01) and np.isclose(top, 1.6, atol=0.01)
+    mean, cov = with_span(means.mean(axis=0), covs.mean(axis=0), up, bottom, top)
+    assert np.isclose(mean[2], 1.3, atol=0.01) and np.isclose(cov[2, 2], 0.6**2 / 12.0, atol=1e-3)
+    # every view cut at the top: the highest tops (90th percentile), not their median
+    _, top_all_cut = vertical_span(means[4:], covs[4:], np.ones(8), up, np.array([[True, False]] * 8))
+    assert np.isclose(top_all_cut, 1.45, atol=0.01)
