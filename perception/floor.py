@@ -140,11 +140,8 @@ def on_floor(
     ``max_gap_m`` above the floor (nor ``agree_m`` below it)."""
     u = floor.up
     means, covs, weights = views
-    w = np.asarray(weights, float) / float(np.sum(weights))
     bottom = float(u @ mean) - np.sqrt(3.0 * max(float(u @ cov @ u), 0.0)) - floor.height
-    tops = means @ u + np.sqrt(3.0 * np.clip(np.einsum("i,nij,j->n", u, covs, u), 0.0, None)) - floor.height
-    order = np.argsort(tops)
-    top = float(tops[order][np.searchsorted(np.cumsum(w[order]), 0.5)])
+    top = _weighted_quantile(view_ends(means, covs, u)[0], np.asarray(weights, float), 0.5) - floor.height
     if not -config.agree_m <= bottom <= config.max_gap_m or top <= 0.0:
         return None
     return with_span(mean, cov, u, floor.height, floor.height + top)
@@ -161,9 +158,17 @@ def with_span(
 
 
 def _weighted_quantile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
+    """The value below which the share ``q`` of the ``weights`` lies."""
     order = np.argsort(values)
-    cumulative = np.cumsum(weights[order]) / weights.sum()
+    cumulative = np.cumsum(weights[order] / weights.sum())
     return float(values[order][min(int(np.searchsorted(cumulative, q)), len(values) - 1)])
+
+
+def view_ends(means: np.ndarray, covs: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The heights along ``up`` of the tops and bottoms (N,) of views with (N, 3) means and (N, 3, 3)
+    covariances: ``sqrt(3)`` standard deviations from their means, as for a uniform extent."""
+    half = np.sqrt(3.0 * np.clip(np.einsum("i,nij,j->n", up, covs, up), 0.0, None))
+    return means @ up + half, means @ up - half
 
 
 def vertical_span(
@@ -175,10 +180,8 @@ def vertical_span(
     views whose box the top edge does not cut (a cut view's top is the edge's, below the object's), else, with
     fewer than ``min_views`` of them, the 90th percentile of all tops; the bottom likewise. None when they cross."""
     w = np.asarray(weights, float)
-    half = np.sqrt(3.0 * np.clip(np.einsum("i,nij,j->n", up, covs, up), 0.0, None))
     ends = []
-    for k, (sign, fallback) in enumerate(((1.0, 0.9), (-1.0, 0.1))):
-        heights = means @ up + sign * half
+    for k, (heights, fallback) in enumerate(zip(view_ends(means, covs, up), (0.9, 0.1), strict=True)):
         seen = ~np.asarray(cut, bool)[:, k]
         if seen.sum() >= min_views:
             ends.append(_weighted_quantile(heights[seen], w[seen], 0.5))
