@@ -245,16 +245,13 @@ def robust_gaussian(
     as they are, since the median of parts is the part seen most. (Views cut small by the image border escape
     this test: the 7-Scenes kitchen table, seen in such parts, lies 0.70 m off, 0.48 m with pooled views.)"""
     n = np.asarray(weights, float)
-    if float(np.linalg.eigvalsh(np.einsum("n,nij->ij", n / n.sum(), covs))[-1]) > parts_std_m**2:
-        w = n / n.sum()
-        mean = w @ means
-        d = means - mean
-        return mean, np.einsum("n,nij->ij", w, covs) + (d.T * w) @ d
-    centre = np.average(means, axis=0, weights=n)
-    for _ in range(iterations):
-        centre = np.average(means, axis=0, weights=n / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-3))
-    w = n * np.minimum(1.0, huber_m / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-9))
-    w /= w.sum()
+    w = n / n.sum()
+    centre = w @ means
+    if float(np.linalg.eigvalsh(np.einsum("n,nij->ij", w, covs))[-1]) <= parts_std_m**2:  # a whole object
+        for _ in range(iterations):
+            centre = np.average(means, axis=0, weights=n / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-3))
+        w = n * np.minimum(1.0, huber_m / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-9))
+        w /= w.sum()
     d = means - centre
     return centre, np.einsum("n,nij->ij", w, covs) + (d.T * w) @ d
 

@@ -35,7 +35,7 @@ class FeatureConfig:
     """A view whose box the image border cuts shows part of the object: its points weigh this much in the pooled
     Gaussians (``ObjectMapper``), so whole views place and size the object (`objslam bench objects`)."""
     support_tilt_deg: float | None = 45.0
-    """Drop the pixels of the surface an object stands on (``without_support``): the dominant plane of the ring
+    """Drop the pixels of the surface an object stands on (``split_support``): the dominant plane of the ring
     around the box, when its normal lies within this angle of the camera's vertical axis (a roughly upright
     camera: a floor or a table top, not a wall). None keeps them."""
     support_tolerance_m: float = 0.015
@@ -164,6 +164,21 @@ def ring_pixels(
     return rows[outside], cols[outside]
 
 
+def level_hypotheses(points: np.ndarray, max_tilt_deg: float, hypotheses: int = 64) -> tuple[np.ndarray, np.ndarray]:
+    """RANSAC plane hypotheses through triplets of camera-frame ``points`` (fixed seed: deterministic) whose
+    normal lies within ``max_tilt_deg`` of the camera's vertical axis: unit normals (M, 3) turned towards the
+    camera's up (-y) and offsets (M,), n . p + d = 0."""
+    triplets = points[np.random.default_rng(0).integers(0, len(points), (hypotheses, 3))]
+    normals = np.cross(triplets[:, 1] - triplets[:, 0], triplets[:, 2] - triplets[:, 0])
+    length = np.linalg.norm(normals, axis=1)
+    ok = length > 1e-9
+    normals = normals[ok] / length[ok, None]
+    normals *= np.where(normals[:, 1] > 0, -1.0, 1.0)[:, None]
+    offsets = -np.einsum("ij,ij->i", normals, triplets[ok, 0])
+    level = -normals[:, 1] >= np.cos(np.radians(max_tilt_deg))
+    return normals[level], offsets[level]
+
+
 def support_plane(
     depth_m: np.ndarray,
     K: Intrinsics,
@@ -185,40 +200,12 @@ def support_plane(
     if valid.sum() < 50:
         return None
     points = depth_points(depth_m, K, rows[valid], cols[valid])
-    triplets = points[np.random.default_rng(0).integers(0, len(points), (hypotheses, 3))]
-    normals = np.cross(triplets[:, 1] - triplets[:, 0], triplets[:, 2] - triplets[:, 0])
-    length = np.linalg.norm(normals, axis=1)
-    ok = length > 1e-9
-    if not ok.any():
+    normals, offsets = level_hypotheses(points, max_tilt_deg, hypotheses)
+    if len(normals) == 0:
         return None
-    normals = normals[ok] / length[ok, None]
-    level = np.abs(normals[:, 1]) >= np.cos(np.radians(max_tilt_deg))
-    if not level.any():
-        return None
-    normals, anchors = normals[level], triplets[ok][level, 0]
-    offsets = -np.einsum("ij,ij->i", normals, anchors)
     inliers = (np.abs(points @ normals.T + offsets) < inlier_m).sum(axis=0)
     best = int(np.argmax(inliers))
     return np.r_[normals[best], offsets[best]] if inliers[best] >= min_share * len(points) else None
-
-
-def without_support(
-    depth_m: np.ndarray,
-    K: Intrinsics,
-    box: Box,
-    rows: np.ndarray,
-    cols: np.ndarray,
-    config: FeatureConfig,
-    min_left: float = 0.3,
-) -> tuple[np.ndarray, np.ndarray]:
-    """The object pixels minus those on the floor or table it stands on (``FeatureConfig.support_tilt_deg``).
-
-    A surface joined to the object's depth segment stretches its extent (a cup's box holds the table around
-    its foot). Nothing is dropped when that would leave less than ``min_left`` of the pixels: an object lying
-    flat on the plane, or a plane that is the object.
-    """
-    rows, cols, _ = split_support(depth_m, K, box, rows, cols, config, min_left)
-    return rows, cols
 
 
 def split_support(
@@ -230,8 +217,13 @@ def split_support(
     config: FeatureConfig,
     min_left: float = 0.3,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """``without_support``'s pixels and the support plane ``(n, d)`` (camera frame) they were taken off, or
-    None when none was."""
+    """The object pixels minus those on the floor or table it stands on (``FeatureConfig.support_tilt_deg``), and
+    that support plane ``(n, d)`` (camera frame), or None when none was taken off.
+
+    A surface joined to the object's depth segment stretches its extent (a cup's box holds the table around
+    its foot). Nothing is dropped when that would leave less than ``min_left`` of the pixels: an object lying
+    flat on the plane, or a plane that is the object.
+    """
     if config.support_tilt_deg is None or len(rows) < 20:
         return rows, cols, None
     plane = support_plane(depth_m, K, box, config.support_tilt_deg)
@@ -244,7 +236,8 @@ def split_support(
 def object_points(depth_m: np.ndarray, K: Intrinsics, box: Box, config: FeatureConfig) -> tuple[np.ndarray, np.ndarray]:
     """A detection's object pixels: its depth segment (``object_pixels``) without its support surface."""
     rows, cols = object_pixels(depth_m, box, config)
-    return without_support(depth_m, K, box, rows, cols, config)
+    rows, cols, _ = split_support(depth_m, K, box, rows, cols, config)
+    return rows, cols
 
 
 def backproject_detection(

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from perception.camera import Intrinsics, pixels_to_points
+from perception.features import level_hypotheses
 
 FLOOR_CLASSES: frozenset[str] = frozenset(
     {"chair", "couch", "bed", "dining table", "refrigerator", "toilet", "bench", "suitcase", "oven"}
@@ -64,14 +65,8 @@ def level_plane(depth_m: np.ndarray, K: Intrinsics, config: FloorConfig) -> np.n
         return None
     points = pixels_to_points(cols[valid].astype(np.float64), rows[valid].astype(np.float64), z[valid], K)
     points = np.asarray(points, np.float64)
-    triplets = points[np.random.default_rng(0).integers(0, len(points), (config.hypotheses, 3))]
-    normals = np.cross(triplets[:, 1] - triplets[:, 0], triplets[:, 2] - triplets[:, 0])
-    length = np.linalg.norm(normals, axis=1)
-    ok = length > 1e-9
-    normals = normals[ok] / length[ok, None]
-    normals *= np.where(normals[:, 1] > 0, -1.0, 1.0)[:, None]  # towards the camera's up (-y)
-    offsets = -np.einsum("ij,ij->i", normals, triplets[ok, 0])
-    keep = (-normals[:, 1] >= np.cos(np.radians(config.max_tilt_deg))) & (offsets >= config.min_below_m)
+    normals, offsets = level_hypotheses(points, config.max_tilt_deg, config.hypotheses)
+    keep = offsets >= config.min_below_m
     if not keep.any():
         return None
     normals, offsets = normals[keep], offsets[keep]
