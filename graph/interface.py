@@ -61,6 +61,16 @@ class Graph(Protocol):
         """Append a keyframe linked to the previous one by an odometry factor; returns its id."""
         ...
 
+    def add_keyframe_from(
+        self, k_a: int, relative: np.ndarray, sigma_m: float | None = None, sigma_deg: float | None = None
+    ) -> int:
+        """Append a keyframe linked to keyframe ``k_a`` by a measured relative pose; returns its id."""
+        ...
+
+    def add_segment(self, pose: np.ndarray, sigma_m: float, sigma_deg: float) -> tuple[int, int]:
+        """Append the first keyframe of a new map segment (a weak gauge prior); its id and the prior's index."""
+        ...
+
     def add_between(self, k_a: int, k_b: int, T_a_b: np.ndarray, sigma_m: float, sigma_deg: float) -> int:
         """An extra Gaussian between-factor of existing keyframes; returns its factor index."""
         ...

@@ -38,13 +38,33 @@ class Keyframes(GraphBase):
         """
         if not self.num_keyframes:
             raise ValueError("add_first must come before add_keyframe")
+        return self.add_keyframe_from(self.num_keyframes - 1, relative, sigma_m, sigma_deg)
+
+    def add_keyframe_from(
+        self, k_a: int, relative: np.ndarray, sigma_m: float | None = None, sigma_deg: float | None = None
+    ) -> int:
+        """Append a keyframe linked to keyframe ``k_a`` by the measured ``relative`` pose (a -> new): the
+        previous keyframe for odometry, any earlier one for a relocalization."""
+        if not 0 <= k_a < self.num_keyframes:
+            raise ValueError(f"keyframe {k_a} does not exist ({self.num_keyframes} keyframes)")
         k = self.num_keyframes
         if sigma_m is None:
             sigma_m, sigma_deg = self.settings.odometry_sigma_m, self.settings.odometry_sigma_deg
         rel = np.array(relative, float)
-        guess = gtsam.Pose3(self._newest()).compose(gtsam.Pose3(rel)).matrix()
-        self.update([FactorRecord(k - 1, k, rel, sigma_m, sigma_deg or self.settings.odometry_sigma_deg)], [guess])
+        guess = gtsam.Pose3(self.pose(k_a)).compose(gtsam.Pose3(rel)).matrix()
+        self.update([FactorRecord(k_a, k, rel, sigma_m, sigma_deg or self.settings.odometry_sigma_deg)], [guess])
         return k
+
+    def add_segment(self, pose: np.ndarray, sigma_m: float, sigma_deg: float) -> tuple[int, int]:
+        """Append a keyframe that nothing measured links to the map (tracking was lost): a new map segment,
+        held by a weak prior at the ``pose`` guess (a gauge for the solver, not a measurement; remove it when
+        a measured factor attaches the segment). Returns the keyframe and the prior's factor index."""
+        if not self.num_keyframes:
+            raise ValueError("add_first must come before add_segment")
+        k = self.num_keyframes
+        pose = np.array(pose, float)
+        result = self.update([FactorRecord(k, None, pose, sigma_m, sigma_deg)], [pose])
+        return k, result.factor_indices[0]
 
     def add_between(self, k_a: int, k_b: int, T_a_b: np.ndarray, sigma_m: float, sigma_deg: float) -> int:
         """An extra Gaussian between-factor of existing keyframes (e.g. a skip edge of the odometry)."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -38,6 +39,9 @@ class LoopAcceptance:
     settings: LoopSettings
     records: list[LoopRecord] = field(default_factory=list)
     accepted: dict[int, AcceptedLoop] = field(default_factory=dict)  # by factor index
+    joined: Callable[[int, int], bool] | None = None
+    """Whether two keyframes' map segments are already joined (``slam.segments``); a verified loop between
+    segments that are not is accepted without the gate: their relative estimate is only a gauge's guess."""
 
     @property
     def n_accepted(self) -> int:
@@ -68,13 +72,14 @@ class LoopAcceptance:
         dt, dr = motion_magnitude(relative(estimate, rel.T_a_b))
         record.translation_diff_m, record.rotation_diff_deg = round(dt, 4), round(math.degrees(dr), 3)
         s = self.settings
-        if dt > s.gate_m or math.degrees(dr) > s.gate_deg:
+        joining = self.joined is not None and not self.joined(a, b)
+        if not joining and (dt > s.gate_m or math.degrees(dr) > s.gate_deg):
             record.reason = "inconsistent_with_odometry"
             return record
         sigma_m, sigma_deg = max(s.sigma_floor_m, rel.sigma_m), max(s.sigma_floor_deg, rel.sigma_deg)
         factor = self.graph.add_loop(a, b, rel.T_a_b, sigma_m, sigma_deg)
         self.accepted[factor] = AcceptedLoop(a, b, rel.T_a_b)
-        record.accepted, record.reason, record.factor = True, "verified", factor
+        record.accepted, record.reason, record.factor = True, "joins_segments" if joining else "verified", factor
         log.info("loop closure accepted: keyframe %d <-> %d (%d inliers)", a, b, rel.inliers)
         return record
 

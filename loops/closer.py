@@ -9,6 +9,7 @@ estimate, and one that now disagrees is retracted (a false loop is worse than a 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
@@ -21,7 +22,7 @@ from loops.place_recognition import PlaceIndex, global_descriptor
 from loops.records import Candidate, KeyframeEntry, LoopRecord, Verified
 from loops.settings import LoopSettings
 from loops.verification import verify
-from perception.odometry import RelativePoseEstimator
+from perception.odometry import Features, Rejected, Relative, RelativePoseEstimator
 
 
 class LoopCloser:
@@ -108,6 +109,28 @@ class LoopCloser:
         features = entry.features.with_depth() if entry.features is not None else None  # only the 3D side kept
         self.keyframes[entry.index] = replace(entry, features=features)
         return verified
+
+    def relocalize(
+        self, features: Features, rgb: np.ndarray, allowed: Callable[[int], bool], attempts: int = 3
+    ) -> tuple[int, Relative] | None:
+        """Place a frame that tracking lost: the stored keyframes it looks most like (``allowed`` ones only, at
+        most ``attempts`` of them) verified by PnP with the loop thresholds; the first that passes and its
+        ``T_keyframe_frame``, else None. Reads the database as it stands (safe beside a mapping thread)."""
+        s = self.settings
+        found = self.places.query(global_descriptor(rgb), np.inf, 0.0, 4 * attempts, s.min_similarity)
+        tried = 0
+        for candidate in found:
+            entry = self.keyframes.get(candidate.index)
+            if entry is None or entry.features is None or not allowed(candidate.index):
+                continue
+            tried += 1
+            try:
+                return candidate.index, self.estimator.estimate(entry.features, features, self.verify_config)
+            except Rejected:
+                pass
+            if tried >= attempts:
+                break
+        return None
 
     def accept(self, verified: list[Verified]) -> list[LoopRecord]:
         """Gate verified candidates against the graph (``LoopAcceptance.accept``); the new records."""

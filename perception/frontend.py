@@ -12,11 +12,19 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+from scipy.spatial.transform import Rotation
 
-from graph.geometry import motion_magnitude, relative
+from graph.geometry import inverse, motion_magnitude, relative
 from perception.frame import CameraModel, Frame
-from perception.icp import icp_refine
-from perception.odometry import FeatureExtractor, Features, OdometrySettings, Rejected, RelativePoseEstimator
+from perception.icp import degenerate_directions, depth_agreement, icp_pyramid, icp_refine
+from perception.odometry import (
+    FeatureExtractor,
+    Features,
+    OdometrySettings,
+    Rejected,
+    RelativePoseEstimator,
+    gray_image,
+)
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +73,7 @@ class Step:
     inliers: int = 0
     features: Features | None = None
     extra: list[tuple[int, np.ndarray, float, float]] = field(default_factory=list)
+    method: str = "features"
 
 
 class ExternalOdometry:
@@ -99,12 +108,35 @@ class ExternalOdometry:
         self._kf_pose, self._since = state["kf_pose"], state["since"]
 
 
+METHODS = ("features", "wide", "guided", "icp", "relocalized", "lost")
+"""How a visual odometry step was found: ORB features (the normal path), wide-baseline features (more of
+them), guided matching around a motion prior's projections, depth ICP from a prior, relocalization against
+the keyframe database, or not at all (the frame starts a new map segment)."""
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """A candidate ``T_kf_frame`` (body frame), the method that found it and its factor sigmas."""
+
+    method: str
+    T: np.ndarray
+    sigma_m: float
+    sigma_deg: float
+    inliers: int = 0
+    refined: bool = False  # ICP from another hypothesis of the same method
+
+
 class VisualOdometry:
     """Frame-to-keyframe RGB-D odometry: ORB + depth on the keyframe, PnP-RANSAC against the new frame.
 
-    Tracking loss (too few matches or inliers, no texture, no depth) keeps the last pose, makes the frame
-    a keyframe with a weak factor (``OdometrySettings.lost_sigma_scale``) and re-initialises on it; it never
-    raises. ``policy`` decides keyframes; ``config`` extracts and matches features and refines by ICP.
+    When the features fail (too few matches or inliers) and at every keyframe whose pose the depth does not
+    confirm, a fallback chain (``OdometrySettings.fallback``) tries more poses from a constant-velocity motion
+    prior: wide-baseline features, guided matching around the prior's projections, coarse-to-fine depth ICP;
+    every candidate is judged by the same evidence, the agreement of the two depth images under it
+    (``perception.icp.depth_agreement``), and the step records its method. When nothing agrees the frame is
+    lost: it becomes a keyframe without an odometry factor (``Step.lost``; the core relocalizes it or starts
+    a new map segment) and tracking re-initialises on it. It never raises. ``policy`` decides keyframes;
+    ``config`` extracts and matches features and refines by ICP.
     """
 
     def __init__(self, camera: CameraModel, policy: KeyframeSettings, config: OdometrySettings | None = None):
@@ -112,20 +144,39 @@ class VisualOdometry:
         self.policy, self.config = policy, config
         self.camera = camera
         self.extractor = FeatureExtractor(camera, config)
+        self.wide_extractor = FeatureExtractor(camera, config.model_copy(update={"n_features": config.wide_features}))
         self.estimator = RelativePoseEstimator(camera, config)
         self._kf_pose: np.ndarray | None = None
         self._kf_features: Features | None = None
         self._kf_depth: np.ndarray | None = None
+        self._kf_gray: np.ndarray | None = None
         self._history: list[tuple[Features, np.ndarray]] = []  # older keyframes, newest last
         self.icp_used = 0
         self._last_pose = np.eye(4)
+        self._last_time = 0.0
+        self._velocity: tuple[np.ndarray, float] | None = None  # the last posed step (T_prev_last) and its dt
         self._since = 0
         self.lost_count = 0
+        self.methods: dict[str, int] = dict.fromkeys(METHODS, 0)
 
-    _STATE = ("_kf_pose", "_kf_features", "_kf_depth", "_history", "icp_used", "_last_pose", "_since", "lost_count")
+    _STATE = (
+        "_kf_pose",
+        "_kf_features",
+        "_kf_depth",
+        "_kf_gray",
+        "_history",
+        "icp_used",
+        "_last_pose",
+        "_last_time",
+        "_velocity",
+        "_since",
+        "lost_count",
+        "methods",
+    )
 
     def state(self) -> dict:
-        """Plain tracking state: the keyframe's pose, features and depth, older keyframes, counters.
+        """Plain tracking state: the keyframe's pose, features, depth and image, older keyframes, the motion
+        prior, counters.
 
         The ORB extractor and matcher (cv2 objects) are not state: they are rebuilt from the camera; nor are
         the settings, which come from the configuration (a snapshot holds plain data only).
@@ -133,44 +184,137 @@ class VisualOdometry:
         return {name.lstrip("_"): getattr(self, name) for name in self._STATE}
 
     def restore(self, state: dict) -> None:
+        defaults = {"kf_gray": None, "last_time": 0.0, "velocity": None, "methods": dict.fromkeys(METHODS, 0)}
         for name in self._STATE:
-            setattr(self, name, state[name.lstrip("_")])
+            key = name.lstrip("_")
+            setattr(self, name, state[key] if key in state else defaults[key])
 
     def track(self, frame: Frame) -> Step:
         features = self.extractor.extract(frame)
         depth = frame.depth_m()
         kf_pose, kf_features, kf_depth = self._kf_pose, self._kf_features, self._kf_depth
         if kf_pose is None or kf_features is None or kf_depth is None:  # the first frame (all three or none)
-            return self._new_keyframe(np.eye(4), features, depth, Step(np.eye(4), True, features=features))
+            step = Step(np.eye(4), True, features=features, method="features")
+            return self._new_keyframe(np.eye(4), features, depth, frame, step)
         self._since += 1
         try:
             rel = self.estimator.estimate(kf_features, features)
+            primary: Hypothesis | None = Hypothesis("features", rel.T_a_b, rel.sigma_m, rel.sigma_deg, rel.inliers)
         except Rejected as exc:
-            return self._lost(frame, kf_pose, features, depth, exc)
-        pose = kf_pose @ rel.T_a_b
-        self._last_pose = pose
-        trans, rot = motion_magnitude(rel.T_a_b)
+            primary, rejected = None, exc
+        if primary is not None and not self._keyframe_due(primary):
+            return self._posed(frame, Step(kf_pose @ primary.T, False, inliers=primary.inliers, method="features"))
+        chosen = self._choose(primary, features, depth, frame, kf_pose)
+        if chosen is None:
+            return self._lost(frame, features, depth, rejected if primary is None else Rejected("no_agreement"))
+        pose = kf_pose @ chosen.T
+        step = Step(
+            pose,
+            True,
+            chosen.T,
+            chosen.sigma_m,
+            chosen.sigma_deg,
+            inliers=chosen.inliers,
+            features=features,
+            extra=self._skip_edges(features, depth),
+            method=chosen.method,
+        )
+        return self._new_keyframe(pose, features, depth, frame, self._posed(frame, step))
+
+    def _keyframe_due(self, h: Hypothesis) -> bool:
+        trans, rot = motion_magnitude(h.T)
         p = self.policy
-        if (
+        return (
             trans >= p.translation_m
             or rot >= math.radians(p.rotation_deg)
             or self._since >= p.max_interval
-            or rel.inliers < p.min_inliers
-        ):
-            T = self._refine(rel.T_a_b, depth, kf_depth)
-            pose = kf_pose @ T
-            step = Step(
-                pose,
-                True,
-                T,
-                rel.sigma_m,
-                rel.sigma_deg,
-                inliers=rel.inliers,
-                features=features,
-                extra=self._skip_edges(features, depth),
-            )
-            return self._new_keyframe(pose, features, depth, step)
-        return Step(pose, False, inliers=rel.inliers, features=features)
+            or h.inliers < p.min_inliers
+        )
+
+    def _choose(
+        self, primary: Hypothesis | None, features: Features, depth: np.ndarray, frame: Frame, kf_pose: np.ndarray
+    ) -> Hypothesis | None:
+        """The keyframe's pose: the features' PnP or its ICP refinement, whichever the depth agrees with more;
+        when neither reaches ``min_agreement`` (or the features failed), the fallback chain's candidates too.
+        A feature pose that passed its own checks is never discarded for lack of agreement."""
+        assert self._kf_depth is not None
+        cfg, kf_depth = self.config, self._kf_depth
+        scored: list[tuple[float, Hypothesis]] = []
+
+        def consider(h: Hypothesis | None) -> None:
+            if h is not None:
+                scored.append((depth_agreement(depth, kf_depth, self.camera.depth, h.T).fraction, h))
+
+        if primary is not None:
+            refined = self._icp(primary.T, depth, kf_depth, pyramid=False, like=primary) if cfg.icp else None
+            if refined is None or not self._small_correction(primary.T, refined.T):
+                consider(primary)  # an ICP correction within the gate replaces it; a larger one competes
+            consider(refined)
+        best = max(scored, key=lambda x: x[0]) if scored else None
+        if best is not None and best[0] >= cfg.min_agreement:
+            return self._count(best[1])
+        if cfg.fallback:
+            for h in self._fallback(features, depth, frame, kf_pose):
+                consider(h)
+            best = max(scored, key=lambda x: x[0]) if scored else None
+            if best is not None and best[0] >= cfg.min_agreement:
+                return self._count(best[1])
+        if primary is not None:  # the features' own checks passed: kept, with its ICP refinement if that agrees more
+            return self._count(max((x for x in scored if x[1].method == "features"), key=lambda x: x[0])[1])
+        return None
+
+    def _count(self, h: Hypothesis) -> Hypothesis:
+        self.methods[h.method] += 1
+        self.icp_used += int(h.refined)
+        return h
+
+    def _fallback(self, features: Features, depth: np.ndarray, frame: Frame, kf_pose: np.ndarray) -> list[Hypothesis]:
+        """Candidates from a constant-velocity prediction: wide-baseline features, guided matching, ICP."""
+        assert self._kf_depth is not None and self._kf_features is not None
+        kf_depth, out = self._kf_depth, []
+        prior = self._prediction(frame.timestamp, kf_pose)
+        wide_kf = self.wide_extractor.extract_gray(self._kf_gray, self._kf_depth) if self._kf_gray is not None else None
+        wide = self.wide_extractor.extract(frame) if wide_kf is not None else None
+        if wide_kf is not None and wide is not None:
+            try:
+                rel = self.estimator.estimate(wide_kf, wide)
+                out.append(Hypothesis("wide", rel.T_a_b, rel.sigma_m, rel.sigma_deg, rel.inliers))
+            except Rejected:
+                pass
+        a, b = (wide_kf, wide) if wide_kf is not None and wide is not None else (self._kf_features, features)
+        try:
+            rel = self.estimator.estimate_guided(a, b, prior, self.config.guided_radius_px)
+            out.append(Hypothesis("guided", rel.T_a_b, rel.sigma_m, rel.sigma_deg, rel.inliers))
+        except Rejected:
+            pass
+        starts = [h.T for h in out] + [prior, np.eye(4)]
+        for T in starts:
+            h = self._icp(T, depth, kf_depth, pyramid=True)
+            if h is not None:
+                out.append(h)
+        return out
+
+    def _prediction(self, timestamp: float, kf_pose: np.ndarray) -> np.ndarray:
+        """``T_kf_frame`` predicted by constant velocity from the last posed step (the last pose without one)."""
+        T_kf_last = inverse(kf_pose) @ self._last_pose
+        if self._velocity is None:
+            return T_kf_last
+        step, dt = self._velocity
+        return T_kf_last @ scaled_motion(step, (timestamp - self._last_time) / dt if dt > 0 else 1.0)
+
+    def _icp(
+        self, T: np.ndarray, depth: np.ndarray, ref_depth: np.ndarray, pyramid: bool, like: Hypothesis | None = None
+    ) -> Hypothesis | None:
+        """Depth point-to-plane ICP from ``T`` (coarse to fine when ``pyramid``); None when it fails or leaves a
+        motion direction unconstrained (a plain wall, a corridor)."""
+        K = self.camera.depth
+        result = icp_pyramid(depth, ref_depth, K, T) if pyramid else icp_refine(depth, ref_depth, K, T)
+        if result is None or degenerate_directions(result.information) > 0:
+            return None
+        cfg = self.config
+        if like is not None:  # a refinement of the features' pose: its method and evidence
+            return Hypothesis(like.method, result.T, like.sigma_m, like.sigma_deg, like.inliers, refined=True)
+        return Hypothesis("icp", result.T, cfg.icp_sigma_m, cfg.icp_sigma_deg, result.inliers)
 
     def _skip_edges(self, features: Features, depth: np.ndarray) -> list[tuple[int, np.ndarray, float, float]]:
         """Extra factors to the keyframes before the previous one: (how many back, T_old_new, sigmas)."""
@@ -184,27 +328,48 @@ class VisualOdometry:
         return edges
 
     def _refine(self, T_pnp: np.ndarray, depth: np.ndarray, ref_depth: np.ndarray) -> np.ndarray:
-        """Depth ICP from the PnP estimate, kept only when it corrects by a plausible amount."""
+        """Depth ICP from the PnP estimate (``_small_correction``)."""
         if not self.config.icp:
             return T_pnp
         result = icp_refine(depth, ref_depth, self.camera.depth, T_pnp)
         if result is None:
             return T_pnp
-        dt, dr = motion_magnitude(relative(T_pnp, result.T))
-        if dt > self.config.icp_max_correction_m or math.degrees(dr) > self.config.icp_max_correction_deg:
+        K = self.camera.depth
+        if not self._small_correction(T_pnp, result.T) and depth_agreement(
+            depth, ref_depth, K, result.T
+        ) < depth_agreement(depth, ref_depth, K, T_pnp):
             return T_pnp
         self.icp_used += 1
         return result.T
 
-    def _lost(self, frame: Frame, kf_pose: np.ndarray, features: Features, depth: np.ndarray, exc: Rejected) -> Step:
-        self.lost_count += 1
-        log.warning("tracking lost at t=%.3f (%s); re-initialising with a weak factor", frame.timestamp, exc)
-        pose = self._last_pose
-        scale = self.config.lost_sigma_scale
-        step = Step(pose, True, relative(kf_pose, pose), 0.05 * scale, 2.0 * scale, lost=True, features=features)
-        return self._new_keyframe(pose, features, depth, step)
+    def _small_correction(self, T_pnp: np.ndarray, T_icp: np.ndarray) -> bool:
+        """ICP moved the features' pose by less than ``icp_max_correction_m`` / ``_deg``: it is used as it is;
+        a larger correction only when the depth agrees with it more (wide baselines bias PnP by centimetres)."""
+        dt, dr = motion_magnitude(relative(T_pnp, T_icp))
+        return dt <= self.config.icp_max_correction_m and math.degrees(dr) <= self.config.icp_max_correction_deg
 
-    def _new_keyframe(self, pose: np.ndarray, features: Features, depth: np.ndarray, step: Step) -> Step:
+    def _posed(self, frame: Frame, step: Step) -> Step:
+        """Remember a posed frame for the motion prior."""
+        dt = frame.timestamp - self._last_time
+        if dt > 0:
+            self._velocity = (relative(self._last_pose, step.pose), dt)
+        self._last_pose, self._last_time = step.pose, frame.timestamp
+        return step
+
+    def _lost(self, frame: Frame, features: Features, depth: np.ndarray, exc: Rejected) -> Step:
+        self.lost_count += 1
+        self.methods["lost"] += 1
+        log.warning("tracking lost at t=%.3f (%s): no odometry factor for this frame", frame.timestamp, exc)
+        step = Step(self._last_pose, True, None, lost=True, features=features, method="lost")
+        self._velocity = None
+        self._last_time = frame.timestamp
+        return self._new_keyframe(self._last_pose, features, depth, frame, step)
+
+    def reanchor(self, pose: np.ndarray) -> None:
+        """The current keyframe's odometry pose is ``pose`` (after relocalization placed it in the map)."""
+        self._kf_pose = self._last_pose = pose
+
+    def _new_keyframe(self, pose: np.ndarray, features: Features, depth: np.ndarray, frame: Frame, step: Step) -> Step:
         if step.lost:
             self._history = []
         elif self._kf_features is not None and self._kf_depth is not None:  # not the first keyframe
@@ -214,5 +379,15 @@ class VisualOdometry:
                 else []
             )
         self._kf_pose, self._kf_features, self._kf_depth = pose, features, depth
+        self._kf_gray = gray_image(frame) if self.config.fallback else None
         self._since, self._last_pose = 0, pose
         return step
+
+
+def scaled_motion(T: np.ndarray, factor: float) -> np.ndarray:
+    """The rigid motion ``T`` scaled along its geodesic by ``factor`` (rotation vector and translation scaled
+    alike: close enough for a motion prior)."""
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(T[:3, :3]).as_rotvec() * factor).as_matrix()
+    out[:3, 3] = T[:3, 3] * factor
+    return out

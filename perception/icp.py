@@ -135,3 +135,82 @@ def _exp_se3(xi: np.ndarray) -> np.ndarray:
         T[:3, :3] = np.eye(3) + np.sin(theta) * Kx + (1 - np.cos(theta)) * Kx @ Kx
     T[:3, 3] = xi[3:]
     return T
+
+
+@dataclass(frozen=True)
+class Agreement:
+    """How well two depth images agree under a relative pose: of the source points that land on valid target
+    depth, the fraction within ``tol`` of the target surface (point-to-plane), and how many landed."""
+
+    fraction: float
+    overlap: int
+
+    def __lt__(self, other: Agreement) -> bool:
+        return self.fraction < other.fraction
+
+
+def depth_agreement(
+    src_depth: np.ndarray,
+    dst_depth: np.ndarray,
+    K: Intrinsics,
+    T_dst_src: np.ndarray,
+    level: int = 4,
+    tol_m: float = 0.015,
+    tol_ratio: float = 0.01,
+) -> Agreement:
+    """The evidence for a relative pose that does not depend on how it was found: ``src_depth``'s points moved
+    by ``T_dst_src`` against ``dst_depth`` (at 1/``level`` resolution), within ``tol_m`` + ``tol_ratio`` x
+    depth of its surface along the normal, and no more than 3 x that nearer or farther along the ray."""
+    src_depth, _ = downsample(src_depth, K, level)
+    dst_depth, Kd = downsample(dst_depth, K, level)
+    src = vertex_map(src_depth, Kd).reshape(-1, 3)
+    src = src[np.isfinite(src[:, 2])]
+    dst_v = vertex_map(dst_depth, Kd)
+    dst_n = normal_map(dst_v)
+    p = src @ T_dst_src[:3, :3].T + T_dst_src[:3, 3]
+    ok, idx = project(p, Kd, dst_depth.shape)
+    q = dst_v.reshape(-1, 3)[idx]
+    n = dst_n.reshape(-1, 3)[idx]
+    pp = p[ok]
+    valid = np.isfinite(q[:, 2]) & np.isfinite(n[:, 0])
+    if not valid.any():
+        return Agreement(0.0, 0)
+    pp, q, n = pp[valid], q[valid], n[valid]
+    tol = tol_m + tol_ratio * q[:, 2]
+    plane = np.abs(np.einsum("ij,ij->i", pp - q, n))
+    close = (plane < tol) & (np.abs(pp[:, 2] - q[:, 2]) < 3 * tol)
+    return Agreement(float(close.mean()), len(pp))
+
+
+COARSE_TO_FINE: tuple[tuple[int, int, int, tuple[float, float]], ...] = (
+    (8, 1, 12, (0.30, 0.10)),
+    (4, 2, 10, (0.10, 0.03)),
+    (2, 3, 8, (0.04, 0.02)),
+)
+"""``icp_pyramid``'s levels: (resolution divisor, source step, iterations, correspondence gate first / last)."""
+
+
+def icp_pyramid(
+    src_depth: np.ndarray,
+    dst_depth: np.ndarray,
+    K: Intrinsics,
+    T_init: np.ndarray,
+    levels: tuple[tuple[int, int, int, tuple[float, float]], ...] = COARSE_TO_FINE,
+    min_inliers: int = 100,
+) -> IcpResult | None:
+    """``icp_refine`` coarse to fine: a wide correspondence gate on small images first, so that a start tens of
+    centimetres off (a motion prior, not a measurement) still converges; None when a level fails."""
+    T, result = T_init, None
+    for level, step, iterations, gate in levels:
+        result = icp_refine(src_depth, dst_depth, K, T, level, step, iterations, gate, min_inliers)
+        if result is None:
+            return None
+        T = result.T
+    return result
+
+
+def degenerate_directions(information: np.ndarray, ratio: float = 1e-3) -> int:
+    """How many of the 6 motion directions the ICP information barely constrains (eigenvalue below ``ratio``
+    of the largest, in units of metres and radians at 1 m): a plain wall leaves 3, a corridor 1."""
+    eig = np.linalg.eigvalsh(0.5 * (information + information.T))
+    return int((eig < ratio * max(float(eig.max()), 1e-12)).sum())

@@ -20,6 +20,9 @@ from perception.registration import depth_at_color_pixels
 
 log = logging.getLogger(__name__)
 
+MAX_GUIDED_HAMMING = 64
+"""Guided matching: the largest ORB descriptor distance (of 256 bits) accepted near a predicted pixel."""
+
 
 class OdometrySettings(BaseModel):
     """RGB-D visual odometry, used for frames that carry no odometry: ORB features with depth, the geometric
@@ -41,10 +44,34 @@ class OdometrySettings(BaseModel):
         description="... nor those on a depth edge: their 5 x 5 depth neighbourhood has holes or spans this "
         "fraction of their depth or more; null = no edge test",
     )
-    lost_sigma_scale: float = Field(default=100.0, ge=1, description="odometry sigma multiplier after tracking loss")
+    lost_sigma_scale: float = Field(
+        default=100.0,
+        ge=1,
+        description="after a tracking loss the new map segment is held by a gauge prior at the last pose with "
+        "sigmas of this x 5 cm and x 2 deg (a gauge, not a measurement: removed when the segment is attached)",
+    )
+    fallback: bool = Field(
+        default=True,
+        description="when feature tracking fails: a constant-velocity prediction, then wide-baseline features, "
+        "guided matching around the predicted projections and coarse-to-fine depth ICP, chosen by depth agreement",
+    )
+    wide_features: int = Field(default=3000, ge=100, description="fallback: ORB features per image")
+    guided_radius_px: float = Field(default=40.0, gt=0, description="fallback: guided matching search radius")
+    min_agreement: float = Field(
+        default=0.75,
+        gt=0,
+        le=1,
+        description="fallback: a pose is used only when at least this fraction of the frame's depth points "
+        "lands on the keyframe's surface (perception.icp.depth_agreement)",
+    )
+    icp_sigma_m: float = Field(default=0.01, gt=0, description="factor translation sigma of a pose found by ICP")
+    icp_sigma_deg: float = Field(default=0.5, gt=0, description="factor rotation sigma of a pose found by ICP")
     icp: bool = Field(default=True, description="refine keyframe-to-keyframe poses by depth point-to-plane ICP")
     icp_max_correction_m: float = Field(
-        default=0.03, gt=0, description="an ICP result moving the feature-based pose farther than this is not used"
+        default=0.03,
+        gt=0,
+        description="an ICP result moving the feature-based pose farther than this is used only when the "
+        "depth agrees with it more (perception.icp.depth_agreement)",
     )
     icp_max_correction_deg: float = Field(default=2.0, gt=0, description="... nor one turning it more than this")
     sigma_m_coeff: float = Field(default=0.08, gt=0, description="factor translation sigma = coeff / sqrt(inliers)")
@@ -103,12 +130,15 @@ class FeatureExtractor:
 
     def extract(self, frame: Frame) -> Features:
         """Keypoints, descriptors and 3D points of ``frame``."""
-        gray = cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
+        return self.extract_gray(gray_image(frame), frame.depth_m())
+
+    def extract_gray(self, gray: np.ndarray, depth_m: np.ndarray) -> Features:
+        """``extract`` from the grey image and metric depth of a frame."""
         kps, desc = self.orb.detectAndCompute(gray, None)
         if desc is None or not kps:
             return Features(np.zeros((0, 2), np.float32), np.zeros((0, 32), np.uint8), np.zeros((0, 3), np.float32))
         px = np.array([k.pt for k in kps], dtype=np.float32)
-        return Features(px, desc, self._points(px, frame.depth_m()))
+        return Features(px, desc, self._points(px, depth_m))
 
     def _points(self, px: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
         c, cfg = self.camera.color, self.config
@@ -116,6 +146,11 @@ class FeatureExtractor:
         with np.errstate(invalid="ignore"):
             z[(z < cfg.min_depth_m) | (z > cfg.max_depth_m)] = np.nan
         return pixels_to_points(px[:, 0], px[:, 1], z, c).astype(np.float32)
+
+
+def gray_image(frame: Frame) -> np.ndarray:
+    """The frame's colour image in grey, what ORB reads."""
+    return cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2GRAY)
 
 
 class RelativePoseEstimator:
@@ -135,8 +170,51 @@ class RelativePoseEstimator:
         ia, ib = self._match(a, b, cfg)
         if len(ia) < cfg.min_matches:
             raise Rejected("too_few_matches", f"{len(ia)} < {cfg.min_matches}", len(ia))
-        obj = a.points[ia].astype(np.float64)
-        img = b.pixels[ib].astype(np.float64)
+        return self._solve(a.points[ia], b.pixels[ib], cfg, cfg.min_inliers, 1.0)
+
+    def estimate_guided(
+        self, a: Features, b: Features, T_a_b: np.ndarray, radius_px: float, config: OdometrySettings | None = None
+    ) -> Relative:
+        """``T_a_b`` from matches searched near where a motion prior ``T_a_b`` (body frame) puts a's points in b:
+        each of a's 3D points takes b's nearest descriptor among the keypoints within ``radius_px`` of its
+        predicted pixel (Hamming distance at most ``MAX_GUIDED_HAMMING``; one match per b keypoint). The
+        prediction gates the search, so no ratio test is needed and repeated texture (tiles, a row of chairs)
+        still matches; the pose is then measured by PnP as in ``estimate``, its sigmas doubled."""
+        cfg = config if config is not None else self.config
+        valid = np.nonzero(np.isfinite(a.points[:, 2]))[0]
+        if len(valid) < cfg.min_inliers or len(b) < cfg.min_inliers:
+            raise Rejected("too_few_matches", f"{min(len(valid), len(b))} keypoints", 0)
+        T_color = self.E @ T_a_b @ self.E_inv  # a's colour camera -> b's, inverted below
+        T_b_a = inverse(T_color)
+        X = a.points[valid].astype(np.float64) @ T_b_a[:3, :3].T + T_b_a[:3, 3]
+        front = X[:, 2] > 0.05
+        valid, X = valid[front], X[front]
+        K = self.K
+        uv = np.stack([K[0, 0] * X[:, 0] / X[:, 2] + K[0, 2], K[1, 1] * X[:, 1] / X[:, 2] + K[1, 2]], axis=1)
+        d2 = ((uv[:, None, :] - b.pixels[None, :, :].astype(np.float64)) ** 2).sum(axis=2)
+        ia_local, ib = np.nonzero(d2 < radius_px**2)
+        if len(ia_local) == 0:
+            raise Rejected("too_few_matches", "no keypoint near a predicted point", 0)
+        ham = np.unpackbits(a.descriptors[valid[ia_local]] ^ b.descriptors[ib], axis=1).sum(axis=1)
+        keep = ham <= MAX_GUIDED_HAMMING
+        ia_local, ib, ham = ia_local[keep], ib[keep], ham[keep]
+        order = np.lexsort((ham, ia_local))  # per a point: its best candidate first
+        ia_local, ib, ham = ia_local[order], ib[order], ham[order]
+        _, first = np.unique(ia_local, return_index=True)
+        ia_local, ib, ham = ia_local[first], ib[first], ham[first]
+        order = np.argsort(ham, kind="stable")  # per b keypoint: the closest descriptor wins
+        ia_local, ib = ia_local[order], ib[order]
+        _, first = np.unique(ib, return_index=True)
+        ia, ib = valid[ia_local[first]], ib[first]
+        if len(ia) < cfg.min_matches:
+            raise Rejected("too_few_matches", f"{len(ia)} guided < {cfg.min_matches}", len(ia))
+        return self._solve(a.points[ia], b.pixels[ib], cfg, cfg.min_inliers, 2.0)
+
+    def _solve(
+        self, points: np.ndarray, pixels: np.ndarray, cfg: OdometrySettings, min_inliers: int, scale: float
+    ) -> Relative:
+        """PnP-RANSAC and LM refinement of a's 3D points against b's pixels; sigmas x ``scale``."""
+        obj, img = points.astype(np.float64), pixels.astype(np.float64)
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
             obj,
             img,
@@ -148,21 +226,21 @@ class RelativePoseEstimator:
             flags=cv2.SOLVEPNP_EPNP,
         )
         n_inl = 0 if inl is None else len(inl)
-        if not ok or n_inl < cfg.min_inliers:
-            raise Rejected("too_few_inliers", f"{n_inl} < {cfg.min_inliers}", len(ia), n_inl)
+        if not ok or n_inl < min_inliers:
+            raise Rejected("too_few_inliers", f"{n_inl} < {min_inliers}", len(obj), n_inl)
         inl = inl[:, 0]
         rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], self.K, None, rvec, tvec)
         proj, _ = cv2.projectPoints(obj[inl], rvec, tvec, self.K, None)
         residual = float(np.sqrt(np.mean(np.sum((proj[:, 0] - img[inl]) ** 2, axis=1))))
         if residual > cfg.max_residual_px:
-            raise Rejected("residual_too_large", f"{residual:.2f} px > {cfg.max_residual_px}", len(ia), n_inl)
+            raise Rejected("residual_too_large", f"{residual:.2f} px > {cfg.max_residual_px}", len(obj), n_inl)
         T_b_a = np.eye(4)
         T_b_a[:3, :3] = cv2.Rodrigues(rvec)[0]
         T_b_a[:3, 3] = tvec[:, 0]
         T_color = inverse(T_b_a)
-        sigma_m = max(0.002, cfg.sigma_m_coeff / np.sqrt(n_inl))
-        sigma_deg = max(0.05, cfg.sigma_deg_coeff / np.sqrt(n_inl))
-        return Relative(self.E_inv @ T_color @ self.E, len(ia), n_inl, residual, sigma_m, sigma_deg)
+        sigma_m = scale * max(0.002, cfg.sigma_m_coeff / np.sqrt(n_inl))
+        sigma_deg = scale * max(0.05, cfg.sigma_deg_coeff / np.sqrt(n_inl))
+        return Relative(self.E_inv @ T_color @ self.E, len(obj), n_inl, residual, sigma_m, sigma_deg)
 
     def _match(self, a: Features, b: Features, cfg: OdometrySettings) -> tuple[np.ndarray, np.ndarray]:
         valid = np.nonzero(np.isfinite(a.points[:, 2]))[0]

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from perception.camera import Intrinsics, pixel_rays, pixels_to_points, points_to_pixels
-from perception.frame import CameraModel
+from perception.frame import CameraModel, Frame
 
 
 def backproject(depth_m: np.ndarray, K: Intrinsics, step: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -127,3 +127,9 @@ def depth_at_color_pixels(
         z = np.where(np.isfinite(z_new), z_new, z)
         last = z_new
     return last
+
+
+def map_points(frame: Frame, step: int = 32, max_depth_m: float = 4.0) -> np.ndarray:
+    """A sparse grid of the frame's depth points (camera frame, float32) for the map's occupancy."""
+    pts, _, _ = backproject(frame.depth_m(), frame.camera.depth, step)
+    return pts[pts[:, 2] <= max_depth_m].astype(np.float32)

@@ -39,6 +39,7 @@ def summarize(core: SlamCore, old: MapSummary) -> MapSummary:
         "factors": graph.num_factors,
         "landmarks": graph.num_landmarks,
         "tracking_lost": core.tracking_lost,
+        "tracking": tracking_health(core),
         "landmark_measurements": len(core.landmarks.assigned) if core.landmarks is not None else 0,
         "object_reposes": core.reposes,
         "object_mapping_errors": core.mapping_errors,
@@ -61,3 +62,29 @@ def loop_events(records: list[dict[str, Any]], published: set[int]) -> tuple[lis
     if gone:
         events.append({"type": "loop_retracted", "accepted": len(accepted), "retracted": gone})
     return events, set(accepted)
+
+
+def tracking_health(core: SlamCore) -> dict[str, Any]:
+    """The ``tracking`` block of ``status``: the last frame's state, frames per method, map segments started,
+    joins and relocalizations, and the frames not tied to the map as ``[first, last]`` seq ranges."""
+    segments = core.segments
+    return {
+        "state": core.tracking_state.value,
+        "methods": dict(core.methods),
+        "segments": segments.count,
+        "segments_unjoined": segments.unjoined(),
+        "joins": segments.joins,
+        "relocalizations": segments.relocalizations,
+        "untied_frames": seq_ranges([r.seq for r in core.untied_frames()]),
+    }
+
+
+def seq_ranges(seqs: list[int]) -> list[list[int]]:
+    """Sorted frame numbers as ``[first, last]`` runs of consecutive ones."""
+    out: list[list[int]] = []
+    for s in sorted(seqs):
+        if out and s == out[-1][1] + 1:
+            out[-1][1] = s
+        else:
+            out.append([s, s])
+    return out

@@ -387,9 +387,9 @@ class ServiceNode:
         self._publish_summary()
 
     def trajectories(self) -> tuple[Trajectory, Trajectory]:
-        """(optimised, odometry) trajectories of every processed frame, taken consistently."""
+        """(optimised poses of the frames tied to the map, odometry of every frame), taken consistently."""
         with self._lock:
-            return self.core.trajectory(), self.core.odometry_trajectory()
+            return self.core.trajectory(tied_only=True), self.core.odometry_trajectory()
 
     def objects_reply(self) -> dict[str, Any]:
         """Objects as ellipsoids (SPEC section 4 fields), as of the last processed frame."""

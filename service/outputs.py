@@ -86,6 +86,17 @@ def report_markdown(summary: dict[str, Any]) -> str:
         lines += ["", "## Trajectory error (SE(3) Umeyama alignment, matched by timestamp)", "", *ate_table(ate)]
     else:
         lines += ["", "No ground truth: no trajectory error."]
+    untied = summary.get("tracking", {}).get("untied_frames")
+    if untied:
+        lines += [
+            "",
+            "## Frames not tied to the map",
+            "",
+            "Tracking was lost before these frames (seq ranges) and no relocalization or loop closure joined their "
+            "map segment to the map; trajectory.tum leaves them out (odometry.tum has them).",
+            "",
+            ", ".join(f"{a}-{b}" if a != b else f"{a}" for a, b in untied),
+        ]
     latency = summary.get("latency")
     if latency:
         lines += ["", "## Stage latency (ms)", "", "| stage | n | p50 | p95 | p99 | max |", "|---|---|---|---|---|---|"]
@@ -125,6 +136,7 @@ def run_summary(name: str, frames: int, elapsed: float, status: dict[str, Any]) 
         "loop_closures": status["loop_closures"]["accepted"],
         "loop_candidates": status["loop_closures"]["accepted"] + status["loop_closures"]["rejected"],
         "tracking_lost": status.get("tracking_lost", 0),
+        "tracking": status.get("tracking", {}),
         "landmarks": status.get("landmarks", 0),
         "landmark_measurements": status.get("landmark_measurements", 0),
         "object_reposes": status.get("object_reposes", 0),

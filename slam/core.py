@@ -24,7 +24,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from graph.geometry import rotation_angles_between
 from graph.object_landmarks import ObjectLandmarks
 from graph.trajectory import Trajectory
 from graph.window import WindowedGraph
@@ -34,11 +33,13 @@ from perception.frame import CameraModel, Detection, Frame, FrameRejected, Reaso
 from perception.frontend import ExternalOdometry, Step, VisualOdometry
 from perception.object_map import ObjectMapper, object_json
 from perception.odometry import FeatureExtractor
-from perception.registration import backproject
+from perception.registration import map_points
 from rl.proposer import PolicyProposer
-from slam import stages
+from slam import relocalization, stages
 from slam.records import FrameRecord, KeyframeLoops, KeyframeObjects, StepResult
+from slam.repose import repose_due
 from slam.runner import Done, Handle, InlineRunner, Lane, Runner
+from slam.segments import Segments, TrackingState
 from slam.settings import SlamConfig
 
 if TYPE_CHECKING:
@@ -65,12 +66,6 @@ class Tracking:
 
 TrackingFactory = Callable[[CameraModel, bool], Tracking]
 """Builds the tracking components for a camera; the flag: the frames carry their own odometry."""
-
-
-def map_points(frame: Frame, step: int = 32, max_depth_m: float = 4.0) -> np.ndarray:
-    """A sparse grid of the frame's depth points (camera frame, float32) for the map's occupancy."""
-    pts, _, _ = backproject(frame.depth_m(), frame.camera.depth, step)
-    return pts[pts[:, 2] <= max_depth_m].astype(np.float32)
 
 
 class SlamCore:
@@ -107,6 +102,9 @@ class SlamCore:
         self.detections_by_class: Counter[str] = Counter()
         self.timings: dict[str, float] = {}
         self.tracking_lost = self.mapping_errors = self.reposes = self.object_map_version = 0
+        self.segments = Segments()
+        self.tracking_state = TrackingState.TRACKING
+        self.methods: Counter[str] = Counter()  # frames per tracking method (perception.frontend.METHODS)
 
     # ------------------------------------------------------------ per frame
 
@@ -129,12 +127,12 @@ class SlamCore:
         if self.tracking is None:
             if frame.odometry is None:
                 log.info("frames carry no odometry: using RGB-D visual odometry")
-            self.tracking = self.tracking_factory(frame.camera, frame.odometry is not None)
+            self.connect(self.tracking_factory(frame.camera, frame.odometry is not None))
+        assert self.tracking is not None
         version, n_loops = self.object_map_version, len(self.loops.records) if self.loops is not None else 0
         t0 = time.perf_counter()
         step = self.tracking.frontend.track(frame)
         self.timings["frontend"] = time.perf_counter() - t0
-        self.tracking_lost += int(step.lost)
         if step.keyframe:
             record = self._add_keyframe(frame, step)
         else:
@@ -142,6 +140,9 @@ class SlamCore:
             offset = np.linalg.inv(self.kf_odometry[kf]) @ step.pose
             record = FrameRecord(frame.timestamp, frame.seq, kf, False, step.pose, offset)
         self.records.append(record)
+        self.methods[step.method] += 1
+        self.tracking_lost += int(step.lost)
+        self.tracking_state = TrackingState.of(step.lost, step.method, self.segments.tied(record.keyframe))
         return StepResult(
             record,
             record.keyframe if record.is_keyframe else None,
@@ -165,16 +166,38 @@ class SlamCore:
             if self.records and frontend.policy.implausible(self.records[-1].odometry, frame.odometry, dt):
                 raise FrameRejected(Reason.ODOMETRY_JUMP, "odometry jumped implausibly far since the last frame")
 
+    def connect(self, tracking: Tracking) -> None:
+        """Use ``tracking``'s components; loop closures between map segments join them."""
+        self.tracking = tracking
+        if tracking.loops is not None:
+            tracking.loops.acceptance.joined = self.joined
+
+    def joined(self, a: int, b: int) -> bool:
+        """Keyframes ``a`` and ``b`` are in map segments joined by measurements."""
+        return self.segments.joined(a, b)
+
     def _add_keyframe(self, frame: Frame, step: Step) -> FrameRecord:
         if not self.kf_odometry:
             kf = self.graph.add_first(step.pose)
+            self.segments.add_keyframe(kf)
+        elif step.lost:
+            frontend = self.frontend
+            assert isinstance(frontend, VisualOdometry)  # external odometry is never lost
+            kf = relocalization.place_lost(
+                self.graph, self.segments, self.loops, frame, step, self.kf_odometry, frontend.config
+            )
+            if step.method == "relocalized":
+                frontend.reanchor(step.pose)
         else:
             if step.factor is None:
                 raise ValueError("the front end made a keyframe without an odometry factor")
             kf = self.graph.add_keyframe(step.factor, step.sigma_m, step.sigma_deg)
+            self.segments.add_keyframe(kf)
             for back, T, sigma_m, sigma_deg in step.extra:
                 if kf - back >= 0:
                     self.graph.add_between(kf - back, kf, T, sigma_m, sigma_deg)
+            if not self.segments.tied(kf):
+                relocalization.try_join(self.graph, self.segments, self.loops, kf, frame, step)
         self.kf_odometry.append(step.pose)
         self.kf_points.append(map_points(frame))
         while len(self.pending) >= MAPPING_LAG:
@@ -249,7 +272,9 @@ class SlamCore:
         if found is not None and self.loops is not None:
             self.timings.update(found.timings)
             t0 = time.perf_counter()
-            self.loops.accept(found.verified)
+            for record in self.loops.accept(found.verified):
+                if record.accepted and not self.segments.joined(record.match_keyframe, record.query_keyframe):
+                    relocalization.join(self.graph, self.segments, record.match_keyframe, record.query_keyframe)
             self.timings["loop_accept"] = time.perf_counter() - t0
 
     def _result(self, handle: Handle):
@@ -313,28 +338,13 @@ class SlamCore:
         return np.linalg.inv(camera.depth_to_color)
 
     def _repose_due(self) -> np.ndarray | None:
-        """Sec. 2.4.7: after an optimisation the feature vectors are recomputed from the updated poses and the
-        objects re-clustered. Due when a keyframe holding object observations has moved more than
-        ``repose_m`` or turned more than ``repose_deg`` since its observations were placed (smaller
-        corrections are below the objects' own noise, and re-clustering every keyframe costs ~50 ms);
-        then the poses to re-place them with, else None.
-        """
-        if self.objects is None or not self.object_poses:
+        """The poses to re-place the object observations with when the graph moved them (``slam.repose``)."""
+        if self.objects is None:
             return None
-        n = len(self.object_poses)
-        # at most ~110 keyframes checked (every n/100-th and the last 10): an optimisation that matters moves
-        # many keyframes together, and a full estimate per keyframe would grow with the map
-        idx = np.unique(np.r_[np.arange(0, n, max(1, n // 100)), np.arange(max(0, n - 10), n)])
-        now = np.stack([self.graph.pose(int(k)) for k in idx])
-        used = np.stack([self.object_poses[k] for k in idx])
-        moved = np.linalg.norm(now[:, :3, 3] - used[:, :3, 3], axis=1).max()
-        turned = np.degrees(rotation_angles_between(now[:, :3, :3], used[:, :3, :3])).max()
-        cfg = self.settings.objects
-        if moved <= cfg.repose_m and turned <= cfg.repose_deg:
-            return None
-        poses = self.graph.poses()[:n]
-        self.object_poses = list(poses)
-        self.reposes += 1
+        poses = repose_due(self.graph, self.object_poses, self.settings.objects)
+        if poses is not None:
+            self.object_poses = list(poses)
+            self.reposes += 1
         return poses
 
     # ------------------------------------------------------------ the map
@@ -357,13 +367,21 @@ class SlamCore:
         landmarks = self.landmarks.positions() if self.landmarks is not None else {}
         return [object_json(o, landmarks.get(o.id)) for o in self.objects_view]
 
-    def trajectory(self) -> Trajectory:
-        """Optimised poses of every processed frame (keyframe estimate composed with its offset)."""
-        if not self.records:
+    def trajectory(self, tied_only: bool = False) -> Trajectory:
+        """Optimised poses of every processed frame (keyframe estimate composed with its offset); with
+        ``tied_only`` only those of frames tied to the map (``untied_frames`` are not)."""
+        records = [r for r in self.records if self.segments.tied(r.keyframe)] if tied_only else self.records
+        if not records:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
         kf_poses = self.graph.poses()
-        poses = np.stack([kf_poses[r.keyframe] @ r.from_keyframe for r in self.records])
-        return Trajectory(np.array([r.timestamp for r in self.records]), poses)
+        poses = np.stack([kf_poses[r.keyframe] @ r.from_keyframe for r in records])
+        return Trajectory(np.array([r.timestamp for r in records]), poses)
+
+    def untied_frames(self) -> list[FrameRecord]:
+        """The frames whose keyframe's map segment is not joined to the map (yet)."""
+        if not self.segments.unjoined():
+            return []
+        return [r for r in self.records if not self.segments.tied(r.keyframe)]
 
     def odometry_trajectory(self) -> Trajectory:
         """The front-end (odometry) poses of every processed frame."""

@@ -19,6 +19,7 @@ from slam.build import build_core
 from slam.core import SlamCore
 from slam.records import FrameRecord, KeyframeLoops
 from slam.runner import Done, Handle, Runner
+from slam.segments import Segments, TrackingState
 from slam.settings import SlamConfig
 
 
@@ -46,6 +47,9 @@ def core_state(core: SlamCore) -> dict[str, Any]:
         "kf_odometry": np.array(core.kf_odometry).reshape(-1, 4, 4),
         "kf_points": core.kf_points,
         "tracking_lost": core.tracking_lost,
+        "segments": core.segments.state(),
+        "tracking_state": core.tracking_state.value,
+        "methods": dict(core.methods),
         "keyframe_detections": core.keyframe_detections,
         "detections_by_class": dict(core.detections_by_class),
         "objects": None if core.objects is None else core.objects.state(),
@@ -81,7 +85,7 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
         tracking.frontend.restore(state["frontend"])
         if tracking.loops is not None and state["loops"] is not None:
             tracking.loops.restore(state["loops"])
-        core.tracking = tracking
+        core.connect(tracking)
         if core.proposer is not None and state.get("proposer") is not None:
             core.proposer.restore(state["proposer"])
     r = state["records"]
@@ -92,6 +96,13 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
     core.kf_odometry = list(state["kf_odometry"])
     core.kf_points = list(state.get("kf_points", []))
     core.tracking_lost = state["tracking_lost"]
+    if "segments" in state:
+        core.segments = Segments.from_state(state["segments"])
+        core.tracking_state = TrackingState(state["tracking_state"])
+        core.methods = Counter(state["methods"])
+    else:  # saved before map segments: one segment of every keyframe
+        for k in range(len(core.kf_odometry)):
+            core.segments.add_keyframe(k)
     core.keyframe_detections = state["keyframe_detections"]
     core.detections_by_class = Counter(state["detections_by_class"])
     if core.objects is not None and state["objects"] is not None:

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from urllib.parse import parse_qsl, urlencode
 
 from sources.base import (
     Dataset,
     DatasetError,
     ObjectTruth,
     ScaledDepth,
+    Subset,
     Trajectory,
     TruthAsOdometry,
     WithoutOdometry,
@@ -21,24 +23,68 @@ __all__ = [
     "DatasetError",
     "ObjectTruth",
     "ScaledDepth",
+    "Subset",
     "Trajectory",
     "TruthAsOdometry",
     "WithoutOdometry",
     "ground_truth_of",
     "open_dataset",
+    "split_view_options",
     "truth_per_frame",
+    "with_view",
 ]
+
+
+VIEW_OPTIONS = ("stride", "drop", "drop_seed")
+"""Spec options of any dataset (``PATH?stride=30``, ``synthetic:room?seed=1&drop=0.3``): a ``Subset`` of its
+frames, every ``stride``-th and/or with a random ``drop`` fraction left out (seeded by ``drop_seed``)."""
 
 
 def open_dataset(
     spec: str, camera_overrides: dict[str, float] | None = None, camera_defaults: dict[str, float] | None = None
 ) -> Dataset:
-    """A dataset from ``synthetic:NAME?...`` or a directory path; a directory without camera files uses the
-    ``camera_overrides`` (command-line flags) over the ``camera_defaults`` (the ``camera`` settings)."""
+    """A dataset from ``synthetic:NAME?...`` or a directory path, optionally ``?stride=N&drop=F&drop_seed=S``
+    (``VIEW_OPTIONS``); a directory without camera files uses the ``camera_overrides`` (command-line flags)
+    over the ``camera_defaults`` (the ``camera`` settings)."""
+    spec, view = split_view_options(spec)
+    dataset: Dataset
     if spec.startswith("synthetic:"):
         from sources.synthetic import parse_synthetic_spec
 
-        return parse_synthetic_spec(spec)
-    from sources.tum import TumDataset
+        dataset = parse_synthetic_spec(spec)
+    else:
+        from sources.tum import TumDataset
 
-    return TumDataset(Path(spec), camera_overrides, camera_defaults)
+        dataset = TumDataset(Path(spec), camera_overrides, camera_defaults)
+    return with_view(dataset, **view)
+
+
+def split_view_options(spec: str) -> tuple[str, dict[str, float]]:
+    """``spec`` without its ``VIEW_OPTIONS``, and their values; DatasetError for a malformed value."""
+    base, sep, query = spec.partition("?")
+    if not sep:
+        return spec, {}
+    try:
+        pairs = parse_qsl(query, keep_blank_values=True, strict_parsing=True)
+    except ValueError:
+        raise DatasetError(f"malformed dataset options {query!r} (expected key=value&...)") from None
+    rest = [(k, v) for k, v in pairs if k not in VIEW_OPTIONS]
+    view: dict[str, float] = {}
+    for key, raw in pairs:
+        if key in VIEW_OPTIONS:
+            try:
+                view[key] = float(raw)
+            except ValueError:
+                raise DatasetError(f"dataset option {key}={raw!r} is not a number") from None
+    return (f"{base}?{urlencode(rest)}" if rest else base), view
+
+
+def with_view(dataset: Dataset, stride: float = 1, drop: float = 0.0, drop_seed: float = 0) -> Dataset:
+    """``dataset`` strided, then thinned by random drops (``Subset``); itself when neither is asked for."""
+    if stride != int(stride) or drop_seed != int(drop_seed):
+        raise DatasetError(f"stride and drop_seed must be integers, got {stride:g} and {drop_seed:g}")
+    if stride != 1:
+        dataset = Subset.strided(dataset, int(stride))
+    if drop:
+        dataset = Subset.dropped(dataset, drop, int(drop_seed))
+    return dataset

@@ -167,3 +167,47 @@ class ScaledDepth(DatasetView):
         f = self.inner.frame(index)
         f.camera = self.camera
         return f
+
+
+class Subset(DatasetView):
+    """A view of some of another dataset's frames, in order: every ``stride``-th (a keyframe-only stream with
+    wide baselines) or a random ``drop`` fraction left out (a busy receiver). The frames keep their own
+    ``seq`` and ``index``, so loop records and ground truth still name the original frames."""
+
+    def __init__(self, inner: Dataset, indices: np.ndarray, label: str):
+        super().__init__(inner)
+        self.indices = np.asarray(indices, dtype=np.int64)
+        if len(self.indices) == 0:
+            raise DatasetError(f"{inner.name}: the {label} view has no frames")
+        self.name = f"{inner.name}[{label}]"
+
+    @classmethod
+    def strided(cls, inner: Dataset, stride: int) -> Subset:
+        """Every ``stride``-th frame, from the first."""
+        if stride < 1:
+            raise DatasetError(f"stride must be a positive integer, got {stride}")
+        return cls(inner, np.arange(0, len(inner), stride), f"stride={stride}")
+
+    @classmethod
+    def dropped(cls, inner: Dataset, fraction: float, seed: int = 0) -> Subset:
+        """The frames left when each one after the first is dropped with probability ``fraction`` (seeded)."""
+        if not 0.0 <= fraction < 1.0:
+            raise DatasetError(f"drop must be a fraction in [0, 1), got {fraction}")
+        keep = np.random.default_rng([seed, 53]).random(len(inner)) >= fraction
+        keep[0] = True
+        return cls(inner, np.nonzero(keep)[0], f"drop={fraction:g},seed={seed}")
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def frame(self, index: int) -> Frame:
+        if not 0 <= index < len(self):
+            raise IndexError(index)
+        return self.inner.frame(int(self.indices[index]))
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        return self.inner.timestamps[self.indices]
+
+    def instance_mask(self, index: int) -> np.ndarray | None:
+        return self.inner.instance_mask(int(self.indices[index]))

@@ -10,7 +10,7 @@ import pytest
 from graph.geometry import motion_magnitude, relative
 from perception.frontend import KeyframeSettings, VisualOdometry
 from perception.icp import icp_refine
-from perception.odometry import FeatureExtractor, RelativePoseEstimator
+from perception.odometry import FeatureExtractor, OdometrySettings, RelativePoseEstimator
 from perception.registration import depth_at_color_pixels, depth_in_color
 from sources import open_dataset
 from tests.conftest import REDKITCHEN, requires_redkitchen
@@ -53,13 +53,26 @@ def test_visual_odometry_tracks_a_synthetic_segment_within_centimetres(room):
     assert vo.lost_count == 0 and drift < 0.03
 
 
-def test_textureless_frames_lose_tracking_without_raising(room):
+def test_a_textureless_frame_is_tracked_by_depth_icp(room):
     vo = VisualOdometry(room.camera, KeyframeSettings())
+    vo.track(room.frame(0))
+    blank = room.frame(3)
+    blank.rgb[:] = 128  # no feature at all: the fallback chain poses it from the depth
+    step = vo.track(blank)
+    assert not step.lost and step.keyframe and step.method == "icp"
+    gt = room.ground_truth.poses
+    dt, dr = motion_magnitude(relative(relative(gt[0], gt[3]), step.pose))
+    assert dt < 0.01 and math.degrees(dr) < 0.5
+    assert step.sigma_m == vo.config.icp_sigma_m and vo.methods["icp"] == 1
+
+
+def test_without_texture_or_fallback_tracking_is_lost_without_an_invented_factor(room):
+    vo = VisualOdometry(room.camera, KeyframeSettings(), OdometrySettings(fallback=False))
     vo.track(room.frame(0))
     blank = room.frame(1)
     blank.rgb[:] = 128
     step = vo.track(blank)
-    assert step.lost and step.keyframe and step.sigma_m >= 1.0
+    assert step.lost and step.keyframe and step.factor is None and step.method == "lost"
     step = vo.track(room.frame(2))  # the featureless keyframe cannot be tracked from: re-initialise here
     assert step.lost and step.keyframe and vo.lost_count == 2
     assert not vo.track(room.frame(3)).lost  # tracking resumes from the re-initialised keyframe
