@@ -16,7 +16,13 @@ from scipy.spatial.transform import Rotation
 
 from graph.geometry import inverse, motion_magnitude, relative
 from perception.frame import CameraModel, Frame
-from perception.icp import degenerate_directions, depth_agreement, icp_pyramid, icp_refine
+from perception.icp import (
+    degenerate_directions,
+    depth_agreement,
+    icp_pyramid,
+    icp_refine,
+    translation_constraint,
+)
 from perception.odometry import (
     FeatureExtractor,
     Features,
@@ -74,6 +80,7 @@ class Step:
     features: Features | None = None
     extra: list[tuple[int, np.ndarray, float, float]] = field(default_factory=list)
     method: str = "features"
+    posed: bool = True  # False: lost, and nothing in the frame to track from (no keyframe; no pose)
 
 
 class ExternalOdometry:
@@ -306,12 +313,15 @@ class VisualOdometry:
         self, T: np.ndarray, depth: np.ndarray, ref_depth: np.ndarray, pyramid: bool, like: Hypothesis | None = None
     ) -> Hypothesis | None:
         """Depth point-to-plane ICP from ``T`` (coarse to fine when ``pyramid``); None when it fails or leaves a
-        motion direction unconstrained (a plain wall, a corridor)."""
+        motion direction unconstrained (a plain wall, a corridor): a pose from depth alone (not refining
+        ``like``, a feature pose) needs ``icp_min_constraint``."""
         K = self.camera.depth
         result = icp_pyramid(depth, ref_depth, K, T) if pyramid else icp_refine(depth, ref_depth, K, T)
         if result is None or degenerate_directions(result.information) > 0:
             return None
         cfg = self.config
+        if like is None and translation_constraint(result.information) < cfg.icp_min_constraint:
+            return None  # depth alone leaves a direction free: the motion along it would be the prior's guess
         if like is not None:  # a refinement of the features' pose: its method and evidence
             return Hypothesis(like.method, result.T, like.sigma_m, like.sigma_deg, like.inliers, refined=True)
         return Hypothesis("icp", result.T, cfg.icp_sigma_m, cfg.icp_sigma_deg, result.inliers)
@@ -357,8 +367,14 @@ class VisualOdometry:
         return step
 
     def _lost(self, frame: Frame, features: Features, depth: np.ndarray, exc: Rejected) -> Step:
+        """No pose for this frame. With enough features to track from it becomes a keyframe without an
+        odometry factor (tracking re-initialises on it); without (a blank wall) it is left unposed and the
+        keyframe stays, so that the next frame with content is tracked against it."""
         self.lost_count += 1
         self.methods["lost"] += 1
+        if int(np.isfinite(features.points[:, 2]).sum()) < self.config.min_matches:
+            log.warning("tracking lost at t=%.3f (%s): nothing to track from, frame not posed", frame.timestamp, exc)
+            return Step(self._last_pose, False, lost=True, features=features, method="lost", posed=False)
         log.warning("tracking lost at t=%.3f (%s): no odometry factor for this frame", frame.timestamp, exc)
         step = Step(self._last_pose, True, None, lost=True, features=features, method="lost")
         self._velocity = None

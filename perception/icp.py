@@ -214,3 +214,12 @@ def degenerate_directions(information: np.ndarray, ratio: float = 1e-3) -> int:
     of the largest, in units of metres and radians at 1 m): a plain wall leaves 3, a corridor 1."""
     eig = np.linalg.eigvalsh(0.5 * (information + information.T))
     return int((eig < ratio * max(float(eig.max()), 1e-12)).sum())
+
+
+def translation_constraint(information: np.ndarray) -> float:
+    """How well ICP's information pins the translation in its weakest direction, relative to its strongest
+    (eigenvalues of the translation block, 0..1): about 0.3 in a room corner with furniture, 0.05-0.3 on the
+    7-Scenes kitchen, 0.005-0.02 when a wall and the ceiling are all there is (the camera may slide along
+    their intersection without changing a residual)."""
+    eig = np.linalg.eigvalsh(0.5 * (information[3:, 3:] + information[3:, 3:].T))
+    return float(max(eig[0], 0.0) / max(float(eig[-1]), 1e-12))

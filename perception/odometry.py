@@ -64,6 +64,13 @@ class OdometrySettings(BaseModel):
         description="fallback: a pose is used only when at least this fraction of the frame's depth points "
         "lands on the keyframe's surface (perception.icp.depth_agreement)",
     )
+    icp_min_constraint: float = Field(
+        default=0.03,
+        ge=0,
+        le=1,
+        description="fallback: a pose from depth ICP alone is used only when its weakest translation direction "
+        "holds at least this fraction of the strongest's information (perception.icp.translation_constraint)",
+    )
     icp_sigma_m: float = Field(default=0.01, gt=0, description="factor translation sigma of a pose found by ICP")
     icp_sigma_deg: float = Field(default=0.5, gt=0, description="factor rotation sigma of a pose found by ICP")
     icp: bool = Field(default=True, description="refine keyframe-to-keyframe poses by depth point-to-plane ICP")

@@ -133,16 +133,16 @@ class SlamCore:
         t0 = time.perf_counter()
         step = self.tracking.frontend.track(frame)
         self.timings["frontend"] = time.perf_counter() - t0
+        self.tracking_lost += int(step.lost)
         if step.keyframe:
             record = self._add_keyframe(frame, step)
         else:
             kf = len(self.kf_odometry) - 1
             offset = np.linalg.inv(self.kf_odometry[kf]) @ step.pose
-            record = FrameRecord(frame.timestamp, frame.seq, kf, False, step.pose, offset)
+            record = FrameRecord(frame.timestamp, frame.seq, kf, False, step.pose, offset, step.posed)
         self.records.append(record)
         self.methods[step.method] += 1
-        self.tracking_lost += int(step.lost)
-        self.tracking_state = TrackingState.of(step.lost, step.method, self.segments.tied(record.keyframe))
+        self.tracking_state = TrackingState.of(step, self.segments.tied(record.keyframe))
         return StepResult(
             record,
             record.keyframe if record.is_keyframe else None,
@@ -370,7 +370,7 @@ class SlamCore:
     def trajectory(self, tied_only: bool = False) -> Trajectory:
         """Optimised poses of every processed frame (keyframe estimate composed with its offset); with
         ``tied_only`` only those of frames tied to the map (``untied_frames`` are not)."""
-        records = [r for r in self.records if self.segments.tied(r.keyframe)] if tied_only else self.records
+        records = [r for r in self.records if r.posed and self.segments.tied(r.keyframe)] if tied_only else self.records
         if not records:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
         kf_poses = self.graph.poses()
@@ -379,15 +379,16 @@ class SlamCore:
 
     def untied_frames(self) -> list[FrameRecord]:
         """The frames whose keyframe's map segment is not joined to the map (yet)."""
-        if not self.segments.unjoined():
+        if not self.segments.unjoined() and self.methods["lost"] == 0:
             return []
-        return [r for r in self.records if not self.segments.tied(r.keyframe)]
+        return [r for r in self.records if not (r.posed and self.segments.tied(r.keyframe))]
 
     def odometry_trajectory(self) -> Trajectory:
-        """The front-end (odometry) poses of every processed frame."""
-        if not self.records:
+        """The front-end (odometry) poses of every processed frame it posed."""
+        records = [r for r in self.records if r.posed]
+        if not records:
             return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
-        return Trajectory(np.array([r.timestamp for r in self.records]), np.stack([r.odometry for r in self.records]))
+        return Trajectory(np.array([r.timestamp for r in records]), np.stack([r.odometry for r in records]))
 
     def loop_records(self) -> list[LoopRecord]:
         """Every loop-closure candidate judged so far, oldest first."""

@@ -22,6 +22,7 @@ class FrameRecord:
     is_keyframe: bool
     odometry: np.ndarray
     from_keyframe: np.ndarray
+    posed: bool = True  # False: tracking was lost and the frame had nothing to track from (it has no pose)
 
 
 @dataclass

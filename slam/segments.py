@@ -12,6 +12,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import Enum
 
+from perception.frontend import Step
+
 
 class TrackingState(str, Enum):  # noqa: UP042 - the value is what status reports
     """What the last frame's tracking was (``status``: ``tracking.state``)."""
@@ -20,16 +22,19 @@ class TrackingState(str, Enum):  # noqa: UP042 - the value is what status report
     PREDICTED = "predicted"  # posed by a fallback from the motion prior (wide features, guided matching, ICP)
     RELOCALIZING = "relocalizing"  # posed within a segment that is not yet joined to the map
     NEW_SEGMENT = "new_segment"  # lost: this frame began a new segment
+    LOST = "lost"  # lost, and nothing in view to track from (a blank wall): the frame has no pose
 
     @classmethod
-    def of(cls, lost: bool, method: str, tied: bool) -> TrackingState:
-        """The state of a frame found by ``method`` (``perception.frontend.METHODS``), lost or not, whose
-        keyframe is ``tied`` to the map or not."""
-        if lost:
+    def of(cls, step: Step, tied: bool) -> TrackingState:
+        """The state of a frame after the front end's ``step`` and the core's placing of it, its keyframe
+        ``tied`` to the map or not."""
+        if not step.posed:
+            return cls.LOST
+        if step.lost:
             return cls.NEW_SEGMENT
         if not tied:
             return cls.RELOCALIZING
-        return cls.TRACKING if method in ("features", "relocalized") else cls.PREDICTED
+        return cls.TRACKING if step.method in ("features", "relocalized") else cls.PREDICTED
 
 
 @dataclass

@@ -43,6 +43,7 @@ def core_state(core: SlamCore) -> dict[str, Any]:
             "is_keyframe": np.array([x.is_keyframe for x in r], bool),
             "odometry": np.array([x.odometry for x in r]).reshape(-1, 4, 4),
             "from_keyframe": np.array([x.from_keyframe for x in r]).reshape(-1, 4, 4),
+            "posed": np.array([x.posed for x in r], bool),
         },
         "kf_odometry": np.array(core.kf_odometry).reshape(-1, 4, 4),
         "kf_points": core.kf_points,
@@ -92,7 +93,11 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
     rows = zip(
         r["timestamp"], r["seq"], r["keyframe"], r["is_keyframe"], r["odometry"], r["from_keyframe"], strict=True
     )
-    core.records = [FrameRecord(float(t), int(s), int(k), bool(kf), odo, off) for t, s, k, kf, odo, off in rows]
+    posed = r.get("posed", np.ones(len(r["timestamp"]), bool))  # saved before unposed frames: all posed
+    core.records = [
+        FrameRecord(float(t), int(s), int(k), bool(kf), odo, off, bool(p))
+        for (t, s, k, kf, odo, off), p in zip(rows, posed, strict=True)
+    ]
     core.kf_odometry = list(state["kf_odometry"])
     core.kf_points = list(state.get("kf_points", []))
     core.tracking_lost = state["tracking_lost"]

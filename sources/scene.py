@@ -83,6 +83,22 @@ def orbit_trajectory(frames: int, fps: float, seed: int, revolutions: float = 1.
     return poses
 
 
+def look_up(poses: np.ndarray, first: int, last: int, angle: float) -> np.ndarray:
+    """The poses with the camera pitched up between frames ``first`` and ``last`` by a smooth bump that peaks
+    at ``angle`` radians half-way: a view that turns away from the room to the plain wall tops and ceiling."""
+    out = poses.copy()
+    n = max(1, last - first)
+    for i in range(max(0, first), min(len(poses), last + 1)):
+        a = angle * 0.5 * (1.0 - np.cos(2.0 * np.pi * (i - first) / n))
+        out[i, :3, :3] = poses[i, :3, :3] @ Rotation.from_rotvec([a, 0.0, 0.0]).as_matrix()  # x right, y down: up
+    return out
+
+
+BLANK_STRETCH = (0.30, 0.42)
+"""``blank`` scene: the fractions of the sequence between which the camera looks up at the plain walls."""
+BLANK_PITCH_RAD = 1.2
+
+
 def _footprint(center: np.ndarray, size: tuple[float, float, float], yaw: float) -> np.ndarray:
     """The four xy corners (4, 2) of a yawed box footprint."""
     c, s = np.cos(yaw), np.sin(yaw)

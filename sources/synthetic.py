@@ -16,6 +16,10 @@ Spec: ``synthetic:room?seed=0&frames=300&width=640&height=480&fps=30`` plus opti
 ``fp_rate`` (0.05 false positives per frame), ``depth_noise`` (1.0 = Kinect sigma), ``loop_gap``
 (100 frames between loop pairs) and ``revolutions`` (1.15 turns over the sequence).
 
+``synthetic:blank?seed=N&...`` (same knobs) is the room with plain painted walls and ceiling, whose camera looks
+up at them for a stretch of the sequence (``scene.BLANK_STRETCH``): no feature and one or two planes in view,
+where tracking must be lost, not invented.
+
 ``synthetic:family?seed=N&...`` (same knobs) is a randomized scene per seed instead, rendered the same way: room
 size, furniture, rows of same-class objects, cluttered tables, plain walls and the camera path kind all drawn
 from the seed (``sources.scene_family``; its layout in ``SyntheticDataset.family``).
@@ -41,7 +45,7 @@ from sources.raycast import (
     surface_texture,
 )
 
-SCENES = ("room", "family")
+SCENES = ("room", "family", "blank")
 MIN_DEPTH_M, MAX_DEPTH_M = 0.4, 4.0
 _COLOURS: dict[str, tuple[int, int, int]] = {
     "dining table": (150, 100, 60),
@@ -127,6 +131,13 @@ class SyntheticDataset(Dataset):
             return poses, list(self.family.objects), family_render.family_surfaces(self.family, _COLOURS)
         poses = scene.orbit_trajectory(frames, self.fps, self.seed, revolutions)
         objects = scene.place_objects(self.seed, poses[:, :3, 3])
+        if name == "blank":  # plain walls and ceiling; for a while the camera sees nothing else
+            first, last = (round(f * frames) for f in scene.BLANK_STRETCH)
+            return (
+                scene.look_up(poses, first, last, scene.BLANK_PITCH_RAD),
+                objects,
+                _surfaces(self.seed, objects, True),
+            )
         return poses, objects, _surfaces(self.seed, objects)
 
     def __len__(self) -> int:
@@ -242,13 +253,15 @@ def _visible_box(r: Render, obj_id: int) -> tuple[tuple[int, int, int, int], int
     return (x0 + int(cols[0]), y0 + int(rows[0]), x0 + int(cols[-1]) + 1, y0 + int(rows[-1]) + 1), int(m.sum())
 
 
-def _surfaces(seed: int, objects: list[ObjectTruth]) -> list[Surface]:
-    """Lit, textured room faces followed by the faces of every object (one distinct texture each)."""
+def _surfaces(seed: int, objects: list[ObjectTruth], plain: bool = False) -> list[Surface]:
+    """Lit, textured room faces (walls and ceiling ``plain`` painted, the floor textured) followed by the faces
+    of every object (one distinct texture each)."""
     light = np.asarray(scene.LIGHT)
 
     def room_texture(k: int, width_m: float, height_m: float) -> np.ndarray:
-        """Texture of room face ``k``."""
-        return surface_texture(np.random.default_rng([seed, 31, k]), width_m, height_m)
+        """Texture of room face ``k`` (4 is the floor)."""
+        texture = family_render.plain_texture if plain and k != 4 else surface_texture
+        return texture(np.random.default_rng([seed, 31, k]), width_m, height_m)
 
     out = room_surfaces(scene.ROOM_SIZE, light, room_texture)
     for obj in objects:
