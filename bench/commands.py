@@ -157,6 +157,18 @@ def bench_odometry(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
     run_slam_bench(console, dataset, write)
 
 
+@bench_app.command("robustness")
+def bench_robustness(
+    seeds: Annotated[str | None, typer.Option("--seeds", help="synthetic seeds (default: the held-out ones)")] = None,
+    write: WriteOpt = None,
+) -> None:
+    """Tracking on 7-Scenes every 20th / 30th / 45th frame and with 30 % / 60 % of frames dropped, and on
+    synthetic scenes with a blank wall and a 30-frame gap: ATE, losses, invented poses, segments."""
+    from bench.robustness import run_robustness_bench
+
+    run_robustness_bench(console, write, _seeds(seeds) if seeds else None)
+
+
 @bench_app.command("loops")
 def bench_loops(dataset: DatasetsOpt = None, write: WriteOpt = None) -> None:
     """Loop candidates judged against ground truth (same runs as `bench odometry`, both tables recorded)."""

@@ -216,10 +216,20 @@ def degenerate_directions(information: np.ndarray, ratio: float = 1e-3) -> int:
     return int((eig < ratio * max(float(eig.max()), 1e-12)).sum())
 
 
-def translation_constraint(information: np.ndarray) -> float:
-    """How well ICP's information pins the translation in its weakest direction, relative to its strongest
-    (eigenvalues of the translation block, 0..1): about 0.3 in a room corner with furniture, 0.05-0.3 on the
-    7-Scenes kitchen, 0.005-0.02 when a wall and the ceiling are all there is (the camera may slide along
-    their intersection without changing a residual)."""
-    eig = np.linalg.eigvalsh(0.5 * (information[3:, 3:] + information[3:, 3:].T))
-    return float(max(eig[0], 0.0) / max(float(eig[-1]), 1e-12))
+def icp_ambiguity(
+    src_depth: np.ndarray, dst_depth: np.ndarray, K: Intrinsics, result: IcpResult, offset_m: float = 0.05
+) -> float:
+    """How far ICP's answer depends on where it starts: ``result`` restarted ``offset_m`` away along its
+    least constrained translation direction, both ways (the finer pyramid levels); the larger distance (m)
+    between where the restarts end and ``result``, inf when one fails. Millimetres when the geometry pins the
+    pose; centimetres when a wall and the ceiling are all there is and the camera may slide along them."""
+    _, vectors = np.linalg.eigh(0.5 * (result.information[3:, 3:] + result.information[3:, 3:].T))
+    spread = 0.0
+    for sign in (-1.0, 1.0):
+        start = result.T.copy()
+        start[:3, 3] += sign * offset_m * vectors[:, 0]
+        again = icp_pyramid(src_depth, dst_depth, K, start, COARSE_TO_FINE[1:])
+        if again is None:
+            return float("inf")
+        spread = max(spread, float(np.linalg.norm(again.T[:3, 3] - result.T[:3, 3])))
+    return spread

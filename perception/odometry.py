@@ -64,12 +64,11 @@ class OdometrySettings(BaseModel):
         description="fallback: a pose is used only when at least this fraction of the frame's depth points "
         "lands on the keyframe's surface (perception.icp.depth_agreement)",
     )
-    icp_min_constraint: float = Field(
-        default=0.03,
-        ge=0,
-        le=1,
-        description="fallback: a pose from depth ICP alone is used only when its weakest translation direction "
-        "holds at least this fraction of the strongest's information (perception.icp.translation_constraint)",
+    icp_max_ambiguity_m: float = Field(
+        default=0.01,
+        gt=0,
+        description="fallback: a pose from depth ICP alone is used only when ICP restarted 5 cm away along its "
+        "least constrained direction ends within this of it (perception.icp.icp_ambiguity)",
     )
     icp_sigma_m: float = Field(default=0.01, gt=0, description="factor translation sigma of a pose found by ICP")
     icp_sigma_deg: float = Field(default=0.5, gt=0, description="factor rotation sigma of a pose found by ICP")
@@ -77,8 +76,7 @@ class OdometrySettings(BaseModel):
     icp_max_correction_m: float = Field(
         default=0.03,
         gt=0,
-        description="an ICP result moving the feature-based pose farther than this is used only when the "
-        "depth agrees with it more (perception.icp.depth_agreement)",
+        description="an ICP result moving the feature-based pose farther than this is not used",
     )
     icp_max_correction_deg: float = Field(default=2.0, gt=0, description="... nor one turning it more than this")
     sigma_m_coeff: float = Field(default=0.08, gt=0, description="factor translation sigma = coeff / sqrt(inliers)")

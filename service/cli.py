@@ -103,6 +103,18 @@ def serve(
     serve_forever(_with_lc(_settings(config, robot, connect, listen, mode, state_dir), lc_source, lc_policy))
 
 
+StrideOpt = Annotated[int | None, typer.Option("--stride", help="every N-th frame only (the dataset option stride=N)")]
+DropOpt = Annotated[float | None, typer.Option("--drop", help="drop this fraction of the frames at random (drop=F)")]
+DropSeedOpt = Annotated[int | None, typer.Option("--drop-seed", help="seed of --drop (drop_seed=S)")]
+
+
+def _view_spec(dataset: str, stride: int | None, drop: float | None, drop_seed: int | None) -> str:
+    """The dataset spec with ``--stride`` / ``--drop`` / ``--drop-seed`` as its options (``sources.VIEW_OPTIONS``)."""
+    options = {"stride": stride, "drop": drop, "drop_seed": drop_seed}
+    extra = "&".join(f"{k}={v}" for k, v in options.items() if v is not None)
+    return dataset if not extra else f"{dataset}{'&' if '?' in dataset else '?'}{extra}"
+
+
 @app.command()
 def replay(
     dataset: Annotated[str, typer.Argument(help="directory or synthetic:NAME?seed=N&frames=N")],
@@ -118,6 +130,9 @@ def replay(
     fy: Annotated[float | None, typer.Option("--fy")] = None,
     cx: Annotated[float | None, typer.Option("--cx")] = None,
     cy: Annotated[float | None, typer.Option("--cy")] = None,
+    stride: StrideOpt = None,
+    drop: DropOpt = None,
+    drop_seed: DropSeedOpt = None,
 ) -> None:
     """Publish a dataset's frames to a running service (protocol v1)."""
     from service.replay import Replayer, frame_publisher
@@ -130,7 +145,9 @@ def replay(
         raise UserError(f"--rate must be positive (got {rate:g})")
     settings = _settings(config, robot, connect, None, mode)
     data = open_dataset(
-        dataset, _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy), settings.camera.model_dump()
+        _view_spec(dataset, stride, drop, drop_seed),
+        _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy),
+        settings.camera.model_dump(),
     )
     session = open_session(settings.zenoh, "client")
     try:
@@ -197,13 +214,16 @@ def run(
     fy: Annotated[float | None, typer.Option("--fy")] = None,
     cx: Annotated[float | None, typer.Option("--cx")] = None,
     cy: Annotated[float | None, typer.Option("--cy")] = None,
+    stride: StrideOpt = None,
+    drop: DropOpt = None,
+    drop_seed: DropSeedOpt = None,
 ) -> None:
     """Run the whole pipeline on one dataset over an embedded zenoh session; write the outputs."""
     from service.run import run_dataset
     from service.summary import print_summary
 
     summary = run_dataset(
-        dataset,
+        _view_spec(dataset, stride, drop, drop_seed),
         out,
         _with_lc(_settings(config), lc_source, lc_policy),
         max_frames,

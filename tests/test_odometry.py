@@ -71,11 +71,12 @@ def test_without_texture_or_fallback_tracking_is_lost_without_an_invented_factor
     vo.track(room.frame(0))
     blank = room.frame(1)
     blank.rgb[:] = 128
-    step = vo.track(blank)
-    assert step.lost and step.keyframe and step.factor is None and step.method == "lost"
-    step = vo.track(room.frame(2))  # the featureless keyframe cannot be tracked from: re-initialise here
-    assert step.lost and step.keyframe and vo.lost_count == 2
-    assert not vo.track(room.frame(3)).lost  # tracking resumes from the re-initialised keyframe
+    step = vo.track(blank)  # nothing to track from: no pose, no keyframe, the keyframe stays
+    assert step.lost and not step.posed and not step.keyframe and step.factor is None and step.method == "lost"
+    assert not vo.track(room.frame(2)).lost and vo.lost_count == 1  # tracked against keyframe 0 again
+    step = vo.track(room.frame(150))  # half a turn away: texture, but nothing in common
+    assert step.lost and step.posed and step.keyframe and step.factor is None and vo.lost_count == 2
+    assert not vo.track(room.frame(152)).lost  # tracking re-initialised on the lost frame
 
 
 @requires_redkitchen
