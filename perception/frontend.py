@@ -12,10 +12,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-from scipy.spatial.transform import Rotation
 
 from graph.geometry import inverse, motion_magnitude, relative
 from perception.frame import CameraModel, Frame
+from perception.hypotheses import METHODS, Hypothesis, scaled_motion
 from perception.icp import (
     degenerate_directions,
     depth_agreement,
@@ -113,24 +113,6 @@ class ExternalOdometry:
 
     def restore(self, state: dict) -> None:
         self._kf_pose, self._since = state["kf_pose"], state["since"]
-
-
-METHODS = ("features", "wide", "guided", "icp", "relocalized", "lost")
-"""How a visual odometry step was found: ORB features (the normal path), wide-baseline features (more of
-them), guided matching around a motion prior's projections, depth ICP from a prior, relocalization against
-the keyframe database, or not at all (the frame starts a new map segment)."""
-
-
-@dataclass(frozen=True)
-class Hypothesis:
-    """A candidate ``T_kf_frame`` (body frame), the method that found it and its factor sigmas."""
-
-    method: str
-    T: np.ndarray
-    sigma_m: float
-    sigma_deg: float
-    inliers: int = 0
-    refined: bool = False  # ICP from another hypothesis of the same method
 
 
 class VisualOdometry:
@@ -396,12 +378,3 @@ class VisualOdometry:
         self._kf_gray = gray_image(frame) if self.config.fallback else None
         self._since, self._last_pose = 0, pose
         return step
-
-
-def scaled_motion(T: np.ndarray, factor: float) -> np.ndarray:
-    """The rigid motion ``T`` scaled along its geodesic by ``factor`` (rotation vector and translation scaled
-    alike: close enough for a motion prior)."""
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(T[:3, :3]).as_rotvec() * factor).as_matrix()
-    out[:3, 3] = T[:3, 3] * factor
-    return out

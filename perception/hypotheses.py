@@ -1,0 +1,34 @@
+"""Candidate motions of a frame relative to its keyframe, and how each was found (the tracking methods)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+METHODS = ("features", "wide", "guided", "icp", "relocalized", "lost")
+"""How a visual odometry step was found: ORB features (the normal path), wide-baseline features (more of
+them), guided matching around a motion prior's projections, depth ICP from a prior, relocalization against
+the keyframe database, or not at all (the frame starts a new map segment)."""
+
+
+@dataclass(frozen=True)
+class Hypothesis:
+    """A candidate ``T_kf_frame`` (body frame), the method that found it and its factor sigmas."""
+
+    method: str
+    T: np.ndarray
+    sigma_m: float
+    sigma_deg: float
+    inliers: int = 0
+    refined: bool = False  # ICP from another hypothesis of the same method
+
+
+def scaled_motion(T: np.ndarray, factor: float) -> np.ndarray:
+    """The rigid motion ``T`` scaled along its geodesic by ``factor`` (rotation vector and translation scaled
+    alike: close enough for a motion prior)."""
+    out = np.eye(4)
+    out[:3, :3] = Rotation.from_rotvec(Rotation.from_matrix(T[:3, :3]).as_rotvec() * factor).as_matrix()
+    out[:3, 3] = T[:3, 3] * factor
+    return out
