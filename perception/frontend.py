@@ -14,6 +14,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from graph.geometry import inverse, motion_magnitude, relative
+from perception.dense import align
 from perception.frame import CameraModel, Frame
 from perception.hypotheses import METHODS, Hypothesis, scaled_motion
 from perception.icp import (
@@ -31,6 +32,7 @@ from perception.odometry import (
     RelativePoseEstimator,
     gray_image,
 )
+from perception.registration import depth_in_color
 
 log = logging.getLogger(__name__)
 
@@ -255,12 +257,13 @@ class VisualOdometry:
         return None
 
     def _count(self, h: Hypothesis) -> Hypothesis:
-        self.methods[h.method] += 1
+        self.methods[h.method] = self.methods.get(h.method, 0) + 1
         self.icp_used += int(h.refined)
         return h
 
     def _fallback(self, features: Features, depth: np.ndarray, frame: Frame, kf_pose: np.ndarray) -> list[Hypothesis]:
-        """Candidates from a constant-velocity prediction: wide-baseline features, guided matching, ICP."""
+        """Candidates from a constant-velocity prediction: wide-baseline features, guided matching, dense
+        photometric alignment, and depth ICP from each of them, from the prediction and from the keyframe."""
         assert self._kf_depth is not None and self._kf_features is not None
         kf_depth, out = self._kf_depth, []
         prior = self._prediction(frame.timestamp, kf_pose)
@@ -278,12 +281,27 @@ class VisualOdometry:
             out.append(Hypothesis("guided", rel.T_a_b, rel.sigma_m, rel.sigma_deg, rel.inliers))
         except Rejected:
             pass
+        if self.config.dense and self._kf_gray is not None:
+            h = self._dense(prior, frame)
+            if h is not None:
+                out.append(h)
         starts = [h.T for h in out] + [prior, np.eye(4)]
         for T in starts:
             h = self._icp(T, depth, kf_depth, pyramid=True)
             if h is not None:
                 out.append(h)
         return out
+
+    def _dense(self, prior: np.ndarray, frame: Frame) -> Hypothesis | None:
+        """Dense photometric alignment of the keyframe to the frame from ``prior`` (``perception.dense``)."""
+        assert self._kf_gray is not None and self._kf_depth is not None
+        E, E_inv = self.estimator.E, self.estimator.E_inv  # body -> colour camera
+        ref_depth = depth_in_color(self._kf_depth, self.camera, scale=2)
+        result = align(self._kf_gray, ref_depth, gray_image(frame), self.camera.color, inverse(E @ prior @ E_inv))
+        if result is None:
+            return None
+        cfg = self.config
+        return Hypothesis("dense", E_inv @ inverse(result.T) @ E, cfg.icp_sigma_m, cfg.icp_sigma_deg, result.pixels)
 
     def _prediction(self, timestamp: float, kf_pose: np.ndarray) -> np.ndarray:
         """``T_kf_frame`` predicted by constant velocity from the last posed step (the last pose without one)."""
@@ -351,7 +369,7 @@ class VisualOdometry:
         odometry factor (tracking re-initialises on it); without (a blank wall) it is left unposed and the
         keyframe stays, so that the next frame with content is tracked against it."""
         self.lost_count += 1
-        self.methods["lost"] += 1
+        self.methods["lost"] = self.methods.get("lost", 0) + 1
         if int(np.isfinite(features.points[:, 2]).sum()) < self.config.min_matches:
             log.warning("tracking lost at t=%.3f (%s): nothing to track from, frame not posed", frame.timestamp, exc)
             return Step(self._last_pose, False, lost=True, features=features, method="lost", posed=False)

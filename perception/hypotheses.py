@@ -7,10 +7,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-METHODS = ("features", "wide", "guided", "icp", "relocalized", "lost")
+METHODS = ("features", "wide", "guided", "icp", "dense", "relocalized", "lost")
 """How a visual odometry step was found: ORB features (the normal path), wide-baseline features (more of
-them), guided matching around a motion prior's projections, depth ICP from a prior, relocalization against
-the keyframe database, or not at all (the frame starts a new map segment)."""
+them), guided matching around a motion prior's projections, dense photometric alignment from the prior, depth
+ICP, relocalization against the keyframe database, or not at all (lost: a new map segment, or no pose)."""
 
 
 @dataclass(frozen=True)

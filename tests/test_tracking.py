@@ -6,10 +6,12 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
 from graph.geometry import motion_magnitude, relative
+from perception.dense import align
 from perception.frontend import KeyframeSettings, VisualOdometry
 from perception.icp import depth_agreement, icp_ambiguity, icp_pyramid
 from service.config import load_settings
@@ -125,3 +127,19 @@ def test_a_run_past_a_blank_wall_invents_no_pose_and_ends_in_one_connected_map(t
     assert len(times) == 300 - len(untied) and not set(np.round(times * 30).astype(int)) & untied
     assert summary["ate"]["trajectory"]["ate_rmse_m"] < 0.03
     assert "Frames not tied to the map" in (tmp_path / "report.md").read_text()
+
+
+def test_dense_alignment_recovers_a_motion_of_8cm_and_7deg_from_the_keyframe_pose():
+    room = open_dataset("synthetic:room?seed=0&frames=300")
+    gt = room.ground_truth.poses
+    a, b = room.frame(0), room.frame(4)
+    true = relative(gt[0], gt[4])  # registered synthetic camera: body = colour camera
+    step_m, step_rad = motion_magnitude(true)
+    assert step_m > 0.07 and math.degrees(step_rad) > 6
+    gray = [cv2.cvtColor(f.rgb, cv2.COLOR_RGB2GRAY) for f in (a, b)]
+    result = align(gray[0], a.depth_m(), gray[1], room.camera.color, np.eye(4))
+    assert result is not None
+    dt, dr = motion_magnitude(relative(true, np.linalg.inv(result.T)))
+    assert dt < 0.01 and math.degrees(dr) < 0.2
+    blank = np.full_like(gray[0], 128)  # a keyframe without gradient: nothing to align
+    assert align(blank, a.depth_m(), gray[1], room.camera.color, np.eye(4)) is None
