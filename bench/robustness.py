@@ -10,7 +10,10 @@ appearance loop closure:
    ``trajectory.tum`` more than 10 cm from the truth after alignment;
 4. the synthetic room with 30 frames missing where the camera comes back to its start (a relocalization).
 
-The synthetic seeds are held out: nothing was tuned on them (development used seeds 0-3).
+The synthetic seeds are held out: nothing was tuned on them (development used seeds 0-40). One held-out
+failure was inspected (blank seed 1007: depth ICP alone jumped to a minimum 1.8 m away); its mechanism was
+reproduced on development seeds 4, 33 and 35 and fixed there (``icp_max_travel_*``); seeds 1010-1019 were
+added afterwards, unseen.
 """
 
 from __future__ import annotations
@@ -36,8 +39,8 @@ STRIDES = (1, 20, 30, 45)
 STRIDE_TARGETS = {1: "<= 4.08 (today's full rate)", 20: "<= 5", 30: "<= 6", 45: "<= 10"}
 DROPS = (0.3, 0.6)
 DROP_SEEDS = (0, 1)
-HELD_OUT = tuple(range(1000, 1010))
-GAP_SEEDS = tuple(range(1000, 1005))
+HELD_OUT = tuple(range(1000, 1020))
+GAP_SEEDS = tuple(range(1000, 1010))
 INVENTED_M = 0.10
 
 
@@ -238,7 +241,10 @@ def run_robustness_bench(console: Console, write: Path | None, seeds: Sequence[i
             f"more than {INVENTED_M * 100:.0f} cm from the truth after alignment. Methods: how each frame was "
             "posed (features, wide-baseline features, guided matching, depth ICP, relocalized, lost). "
             "Segments: started by a loss (the first one included) / joins by relocalization or loop closure / "
-            "left unjoined. The synthetic seeds are held out (development used seeds 0-3)."
+            "left unjoined. The synthetic seeds are held out (development used blank seeds 0-40). Blank seed 1007's "
+            "failure in the first run (ICP alone jumped to a minimum 1.8 m away: 286 poses invented) was inspected, "
+            "reproduced on development seeds 4, 33 and 35 and fixed there (`odometry.icp_max_travel_m` / `_deg`); "
+            "seeds 1010-1019 were added after that, unseen."
         )
         record(
             "robustness",

@@ -120,14 +120,11 @@ class ExternalOdometry:
 class VisualOdometry:
     """Frame-to-keyframe RGB-D odometry: ORB + depth on the keyframe, PnP-RANSAC against the new frame.
 
-    When the features fail (too few matches or inliers) and at every keyframe whose pose the depth does not
-    confirm, a fallback chain (``OdometrySettings.fallback``) tries more poses from a constant-velocity motion
-    prior: wide-baseline features, guided matching around the prior's projections, coarse-to-fine depth ICP;
-    every candidate is judged by the same evidence, the agreement of the two depth images under it
-    (``perception.icp.depth_agreement``), and the step records its method. When nothing agrees the frame is
-    lost: it becomes a keyframe without an odometry factor (``Step.lost``; the core relocalizes it or starts
-    a new map segment) and tracking re-initialises on it. It never raises. ``policy`` decides keyframes;
-    ``config`` extracts and matches features and refines by ICP.
+    When the features fail, and at a keyframe whose pose the depth does not confirm, a fallback chain (wide
+    features, guided matching, depth ICP from a constant-velocity prior) offers more poses, judged by the
+    agreement of the two depth images (``perception.icp.depth_agreement``); the step records its method.
+    When nothing agrees the frame is lost (``Step.lost``, no factor; the core relocalizes it or starts a
+    map segment). It never raises. ``policy`` decides keyframes; ``config`` the rest.
     """
 
     def __init__(self, camera: CameraModel, policy: KeyframeSettings, config: OdometrySettings | None = None):
@@ -316,14 +313,19 @@ class VisualOdometry:
     ) -> Hypothesis | None:
         """Depth point-to-plane ICP from ``T`` (coarse to fine when ``pyramid``); None when it fails or leaves a
         motion direction unconstrained (a plain wall, a corridor): a pose from depth alone (not refining
-        ``like``, a feature pose) must not depend on where ICP starts (``icp_max_ambiguity_m``)."""
+        ``like``, a feature pose) must end near its start (``icp_max_travel_*``) and not depend on where ICP
+        starts (``icp_max_ambiguity_m``)."""
         K = self.camera.depth
         result = icp_pyramid(depth, ref_depth, K, T) if pyramid else icp_refine(depth, ref_depth, K, T)
         if result is None or degenerate_directions(result.information) > 0:
             return None
         cfg = self.config
-        if like is None and icp_ambiguity(depth, ref_depth, K, result) > cfg.icp_max_ambiguity_m:
-            return None  # depth alone leaves a direction free: the motion along it would be a guess
+        if like is None:
+            travel_m, travel_rad = motion_magnitude(relative(T, result.T))
+            if travel_m > cfg.icp_max_travel_m or math.degrees(travel_rad) > cfg.icp_max_travel_deg:
+                return None  # beyond the coarsest level's reach: ICP jumped to another minimum
+            if icp_ambiguity(depth, ref_depth, K, result) > cfg.icp_max_ambiguity_m:
+                return None  # depth alone leaves a direction free: the motion along it would be a guess
         if like is not None:  # a refinement of the features' pose: its method and evidence
             return Hypothesis(like.method, result.T, like.sigma_m, like.sigma_deg, like.inliers, refined=True)
         return Hypothesis("icp", result.T, cfg.icp_sigma_m, cfg.icp_sigma_deg, result.inliers)

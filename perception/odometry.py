@@ -76,6 +76,13 @@ class OdometrySettings(BaseModel):
         description="fallback: a pose from depth ICP alone is used only when ICP restarted 5 cm away along its "
         "least constrained direction ends within this of it (perception.icp.icp_ambiguity)",
     )
+    icp_max_travel_m: float = Field(
+        default=0.5,
+        gt=0,
+        description="fallback: a pose from depth ICP alone must lie within this of where ICP started (its "
+        "coarsest level corrects starts some 30 cm off; an answer a metre away is another minimum)",
+    )
+    icp_max_travel_deg: float = Field(default=30.0, gt=0, description="... and turned at most this from it")
     icp_sigma_m: float = Field(
         default=0.01, gt=0, description="factor translation sigma of a pose found by ICP or dense alignment"
     )
