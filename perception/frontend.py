@@ -317,10 +317,12 @@ class VisualOdometry:
         starts (``icp_max_ambiguity_m``)."""
         K = self.camera.depth
         result = icp_pyramid(depth, ref_depth, K, T) if pyramid else icp_refine(depth, ref_depth, K, T)
-        if result is None or degenerate_directions(result.information) > 0:
+        if result is None:
             return None
         cfg = self.config
         if like is None:
+            if degenerate_directions(result.information) > 0:
+                return None
             travel_m, travel_rad = motion_magnitude(relative(T, result.T))
             if travel_m > cfg.icp_max_travel_m or math.degrees(travel_rad) > cfg.icp_max_travel_deg:
                 return None  # beyond the coarsest level's reach: ICP jumped to another minimum
