@@ -76,6 +76,15 @@ def project(points: np.ndarray, K: Intrinsics, shape: tuple[int, int]) -> tuple[
     return ok, v[ok].astype(int) * w + u[ok].astype(int)
 
 
+def correspond(
+    points: np.ndarray, dst_v: np.ndarray, dst_n: np.ndarray, K: Intrinsics
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Projective association: the points (in the target camera) that land inside the target image, and the
+    target vertex and normal at their pixel (NaN where the target has none)."""
+    ok, idx = project(points, K, dst_v.shape[:2])
+    return points[ok], dst_v.reshape(-1, 3)[idx], dst_n.reshape(-1, 3)[idx]
+
+
 def icp_refine(
     src_depth: np.ndarray,
     dst_depth: np.ndarray,
@@ -99,17 +108,12 @@ def icp_refine(
     src = src[np.isfinite(src[:, 2])]
     dst_v = vertex_map(dst_depth, K)
     dst_n = normal_map(dst_v)
-    h, w = dst_depth.shape
     T = T_init.copy()
     A = np.zeros((0, 6))
     residual = np.zeros(0)
     for it in range(iterations):
         gate = max_dist[0] + (max_dist[1] - max_dist[0]) * it / max(1, iterations - 1)
-        p = src @ T[:3, :3].T + T[:3, 3]
-        ok, idx = project(p, K, (h, w))
-        q = dst_v.reshape(-1, 3)[idx]
-        n = dst_n.reshape(-1, 3)[idx]
-        pp = p[ok]
+        pp, q, n = correspond(src @ T[:3, :3].T + T[:3, 3], dst_v, dst_n, K)
         r = np.einsum("ij,ij->i", pp - q, n)
         good = np.isfinite(r) & (np.linalg.norm(pp - q, axis=1) < gate)
         if good.sum() < min_inliers:
@@ -145,9 +149,6 @@ class Agreement:
     fraction: float
     overlap: int
 
-    def __lt__(self, other: Agreement) -> bool:
-        return self.fraction < other.fraction
-
 
 def depth_agreement(
     src_depth: np.ndarray,
@@ -167,11 +168,7 @@ def depth_agreement(
     src = src[np.isfinite(src[:, 2])]
     dst_v = vertex_map(dst_depth, Kd)
     dst_n = normal_map(dst_v)
-    p = src @ T_dst_src[:3, :3].T + T_dst_src[:3, 3]
-    ok, idx = project(p, Kd, dst_depth.shape)
-    q = dst_v.reshape(-1, 3)[idx]
-    n = dst_n.reshape(-1, 3)[idx]
-    pp = p[ok]
+    pp, q, n = correspond(src @ T_dst_src[:3, :3].T + T_dst_src[:3, 3], dst_v, dst_n, Kd)
     valid = np.isfinite(q[:, 2]) & np.isfinite(n[:, 0])
     if not valid.any():
         return Agreement(0.0, 0)
