@@ -16,7 +16,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from graph.geometry import inverse, motion_magnitude, relative
 from perception.dense import align
 from perception.frame import CameraModel, Frame
-from perception.hypotheses import METHODS, Hypothesis, scaled_motion
+from perception.hypotheses import Hypothesis, Method, scaled_motion
 from perception.icp import (
     degenerate_directions,
     depth_agreement,
@@ -81,7 +81,7 @@ class Step:
     inliers: int = 0
     features: Features | None = None
     extra: list[tuple[int, np.ndarray, float, float]] = field(default_factory=list)
-    method: str = "features"
+    method: Method = "features"
     posed: bool = True  # False: lost, and nothing in the frame to track from (no keyframe; no pose)
 
 
@@ -145,7 +145,6 @@ class VisualOdometry:
         self._velocity: tuple[np.ndarray, float] | None = None  # the last posed step (T_prev_last) and its dt
         self._since = 0
         self.lost_count = 0
-        self.methods: dict[str, int] = dict.fromkeys(METHODS, 0)
 
     _STATE = (
         "_kf_pose",
@@ -159,7 +158,6 @@ class VisualOdometry:
         "_velocity",
         "_since",
         "lost_count",
-        "methods",
     )
 
     def state(self) -> dict:
@@ -172,7 +170,7 @@ class VisualOdometry:
         return {name.lstrip("_"): getattr(self, name) for name in self._STATE}
 
     def restore(self, state: dict) -> None:
-        defaults = {"kf_gray": None, "last_time": 0.0, "velocity": None, "methods": dict.fromkeys(METHODS, 0)}
+        defaults = {"kf_gray": None, "last_time": 0.0, "velocity": None}  # saved before the fallback chain
         for name in self._STATE:
             key = name.lstrip("_")
             setattr(self, name, state[key] if key in state else defaults[key])
@@ -242,19 +240,18 @@ class VisualOdometry:
             consider(refined if use_refined else primary)
         best = max(scored, key=lambda x: x[0]) if scored else None
         if best is not None and best[0] >= cfg.min_agreement:
-            return self._count(best[1])
+            return self._chosen(best[1])
         if cfg.fallback:
             for h in self._fallback(features, depth, frame, kf_pose):
                 consider(h)
             best = max(scored, key=lambda x: x[0]) if scored else None
             if best is not None and best[0] >= cfg.min_agreement:
-                return self._count(best[1])
+                return self._chosen(best[1])
         if primary is not None:  # the features' own checks passed: kept (scored first)
-            return self._count(scored[0][1])
+            return self._chosen(scored[0][1])
         return None
 
-    def _count(self, h: Hypothesis) -> Hypothesis:
-        self.methods[h.method] = self.methods.get(h.method, 0) + 1
+    def _chosen(self, h: Hypothesis) -> Hypothesis:
         self.icp_used += int(h.refined)
         return h
 
@@ -373,7 +370,6 @@ class VisualOdometry:
         odometry factor (tracking re-initialises on it); without (a blank wall) it is left unposed and the
         keyframe stays, so that the next frame with content is tracked against it."""
         self.lost_count += 1
-        self.methods["lost"] = self.methods.get("lost", 0) + 1
         if int(np.isfinite(features.points[:, 2]).sum()) < self.config.min_matches:
             log.warning("tracking lost at t=%.3f (%s): nothing to track from, frame not posed", frame.timestamp, exc)
             return Step(self._last_pose, False, lost=True, features=features, method="lost", posed=False)

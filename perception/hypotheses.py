@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-METHODS = ("features", "wide", "guided", "icp", "dense", "relocalized", "lost")
+Method = Literal["features", "wide", "guided", "icp", "dense", "relocalized", "lost"]
 """How a visual odometry step was found: ORB features (the normal path), wide-baseline features (more of
 them), guided matching around a motion prior's projections, dense photometric alignment from the prior, depth
 ICP, relocalization against the keyframe database, or not at all (lost: a new map segment, or no pose)."""
@@ -17,7 +18,7 @@ ICP, relocalization against the keyframe database, or not at all (lost: a new ma
 class Hypothesis:
     """A candidate ``T_kf_frame`` (body frame), the method that found it and its factor sigmas."""
 
-    method: str
+    method: Method
     T: np.ndarray
     sigma_m: float
     sigma_deg: float

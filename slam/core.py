@@ -104,7 +104,7 @@ class SlamCore:
         self.tracking_lost = self.mapping_errors = self.reposes = self.object_map_version = 0
         self.segments = Segments()
         self.tracking_state = TrackingState.TRACKING
-        self.methods: Counter[str] = Counter()  # frames per tracking method (perception.frontend.METHODS)
+        self.methods: Counter[str] = Counter()  # frames per tracking method (perception.hypotheses.Method)
 
     # ------------------------------------------------------------ per frame
 
