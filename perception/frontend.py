@@ -99,15 +99,15 @@ class ExternalOdometry:
             raise ValueError("external odometry needs frames that carry odometry")
         if self._kf_pose is None:
             self._kf_pose, self._since = pose, 0
-            return Step(pose, True)
+            return Step(pose, True, method="odometry")
         rel = relative(self._kf_pose, pose)
         trans, rot = motion_magnitude(rel)
         self._since += 1
         p = self.policy
         if trans >= p.translation_m or rot >= math.radians(p.rotation_deg) or self._since >= p.max_interval:
             self._kf_pose, self._since = pose, 0
-            return Step(pose, True, rel)
-        return Step(pose, False)
+            return Step(pose, True, rel, method="odometry")
+        return Step(pose, False, method="odometry")
 
     def state(self) -> dict:
         """Plain tracking state (the last keyframe's pose, frames since it)."""

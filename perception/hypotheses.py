@@ -8,10 +8,11 @@ from typing import Literal
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-Method = Literal["features", "wide", "guided", "icp", "dense", "relocalized", "lost"]
-"""How a visual odometry step was found: ORB features (the normal path), wide-baseline features (more of
-them), guided matching around a motion prior's projections, dense photometric alignment from the prior, depth
-ICP, relocalization against the keyframe database, or not at all (lost: a new map segment, or no pose)."""
+Method = Literal["odometry", "features", "wide", "guided", "icp", "dense", "relocalized", "lost"]
+"""How a step was found: the frames' own odometry (external odometry); else by visual odometry: ORB features
+(the normal path), wide-baseline features (more of them), guided matching around a motion prior's projections,
+depth ICP, dense photometric alignment from the prior, relocalization against the keyframe database, or not at
+all (lost: a new map segment, or no pose)."""
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from perception.frontend import Step
 class TrackingState(str, Enum):  # noqa: UP042 - the value is what status reports
     """What the last frame's tracking was (``status``: ``tracking.state``)."""
 
-    TRACKING = "tracking"  # posed by features, in the map
+    TRACKING = "tracking"  # posed by features (or the frames' own odometry), in the map
     PREDICTED = "predicted"  # posed by a fallback from the motion prior (wide features, guided matching, ICP)
     RELOCALIZING = "relocalizing"  # posed within a segment that is not yet joined to the map
     NEW_SEGMENT = "new_segment"  # lost: this frame began a new segment
@@ -34,7 +34,7 @@ class TrackingState(str, Enum):  # noqa: UP042 - the value is what status report
             return cls.NEW_SEGMENT
         if not tied:
             return cls.RELOCALIZING
-        return cls.TRACKING if step.method in ("features", "relocalized") else cls.PREDICTED
+        return cls.TRACKING if step.method in ("odometry", "features", "relocalized") else cls.PREDICTED
 
 
 @dataclass

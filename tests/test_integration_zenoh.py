@@ -77,6 +77,9 @@ def test_replayed_frames_are_all_processed_and_trajectory_equals_chained_odometr
         assert status["frames_processed"] == FRAMES, status
         assert status["frames_rejected"] == {} and status["frames_dropped"] == 0
         assert 1 < status["keyframes"] < FRAMES and status["protocol_version"] == 1
+        tracking = status["tracking"]
+        assert tracking["state"] == "tracking" and tracking["methods"] == {"odometry": FRAMES}
+        assert tracking["segments"] == 1 and tracking["segments_unjoined"] == 0 and tracking["untied_frames"] == []
 
         cli = subprocess.run(
             [sys.executable, "-m", "service", "status", "--json", *common], capture_output=True, text=True, timeout=60
