@@ -14,14 +14,11 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from graph.geometry import inverse, motion_magnitude, relative
-from perception.dense import align
+from perception.fallback import FallbackChain, icp_hypothesis
 from perception.frame import CameraModel, Frame
 from perception.hypotheses import Hypothesis, Method, scaled_motion
 from perception.icp import (
-    degenerate_directions,
     depth_agreement,
-    icp_ambiguity,
-    icp_pyramid,
     icp_refine,
 )
 from perception.odometry import (
@@ -32,7 +29,6 @@ from perception.odometry import (
     RelativePoseEstimator,
     gray_image,
 )
-from perception.registration import depth_in_color
 
 log = logging.getLogger(__name__)
 
@@ -132,8 +128,8 @@ class VisualOdometry:
         self.policy, self.config = policy, config
         self.camera = camera
         self.extractor = FeatureExtractor(camera, config)
-        self.wide_extractor = FeatureExtractor(camera, config.model_copy(update={"n_features": config.wide_features}))
         self.estimator = RelativePoseEstimator(camera, config)
+        self.chain = FallbackChain(camera, config, self.estimator)
         self._kf_pose: np.ndarray | None = None
         self._kf_features: Features | None = None
         self._kf_depth: np.ndarray | None = None
@@ -222,7 +218,8 @@ class VisualOdometry:
     ) -> Hypothesis | None:
         """The keyframe's pose: the features' PnP (refined by ICP within the correction gate); when the depth does
         not agree with it (``min_agreement``) or the features failed, the fallback chain's candidates compete
-        by agreement. A feature pose that passed its own checks is never discarded for lack of agreement."""
+        by agreement (against a feature pose, only those far from it). A feature pose that passed its own
+        checks is never discarded for lack of agreement."""
         assert self._kf_depth is not None
         cfg, kf_depth = self.config, self._kf_depth
         scored: list[tuple[float, Hypothesis]] = []
@@ -232,7 +229,9 @@ class VisualOdometry:
                 scored.append((depth_agreement(depth, kf_depth, self.camera.depth, h.T).fraction, h))
 
         if primary is not None:
-            refined = self._icp(primary.T, depth, kf_depth, pyramid=False, like=primary) if cfg.icp else None
+            refined = (
+                icp_hypothesis(self.camera.depth, cfg, primary.T, depth, kf_depth, like=primary) if cfg.icp else None
+            )
             # an ICP correction within the gate replaces the features' pose; a larger one is not used: PnP and
             # depth ICP disagree by centimetres when colour and depth are misregistered (7-Scenes), and the
             # loop closures are PnP too (letting ICP compete by agreement took 7-Scenes from 4.07 to 5.98 cm)
@@ -242,8 +241,12 @@ class VisualOdometry:
         if best is not None and best[0] >= cfg.min_agreement:
             return self._chosen(best[1])
         if cfg.fallback:
-            for h in self._fallback(features, depth, frame, kf_pose):
-                consider(h)
+            assert self._kf_features is not None
+            prior = self._prediction(frame.timestamp, kf_pose)
+            kf = (self._kf_features, self._kf_gray, kf_depth)
+            for h in self.chain.candidates(kf, features, depth, frame, prior):
+                if primary is None or self._far_from(primary, h):
+                    consider(h)
             best = max(scored, key=lambda x: x[0]) if scored else None
             if best is not None and best[0] >= cfg.min_agreement:
                 return self._chosen(best[1])
@@ -251,51 +254,16 @@ class VisualOdometry:
             return self._chosen(scored[0][1])
         return None
 
+    def _far_from(self, primary: Hypothesis, h: Hypothesis) -> bool:
+        """``h`` differs from the features' pose by more than ``fallback_override_m`` / ``_deg``: only then may
+        it replace it. ICP maximises the very agreement it is scored by, so a nearby ICP answer always scores
+        a little higher than a sound feature pose; a feature pose tens of centimetres off is another matter."""
+        dt, dr = motion_magnitude(relative(primary.T, h.T))
+        return dt > self.config.fallback_override_m or math.degrees(dr) > self.config.fallback_override_deg
+
     def _chosen(self, h: Hypothesis) -> Hypothesis:
         self.icp_used += int(h.refined)
         return h
-
-    def _fallback(self, features: Features, depth: np.ndarray, frame: Frame, kf_pose: np.ndarray) -> list[Hypothesis]:
-        """Candidates from a constant-velocity prediction: wide-baseline features, guided matching, dense
-        photometric alignment, and depth ICP from each of them, from the prediction and from the keyframe."""
-        assert self._kf_depth is not None and self._kf_features is not None
-        kf_depth, out = self._kf_depth, []
-        prior = self._prediction(frame.timestamp, kf_pose)
-        wide_kf = self.wide_extractor.extract_gray(self._kf_gray, self._kf_depth) if self._kf_gray is not None else None
-        wide = self.wide_extractor.extract(frame) if wide_kf is not None else None
-        if wide_kf is not None and wide is not None:
-            try:
-                rel = self.estimator.estimate(wide_kf, wide)
-                out.append(Hypothesis("wide", rel.T_a_b, rel.sigma_m, rel.sigma_deg, rel.inliers))
-            except Rejected:
-                pass
-        a, b = (wide_kf, wide) if wide_kf is not None and wide is not None else (self._kf_features, features)
-        try:
-            rel = self.estimator.estimate_guided(a, b, prior, self.config.guided_radius_px)
-            out.append(Hypothesis("guided", rel.T_a_b, rel.sigma_m, rel.sigma_deg, rel.inliers))
-        except Rejected:
-            pass
-        if self.config.dense and self._kf_gray is not None:
-            h = self._dense(prior, frame)
-            if h is not None:
-                out.append(h)
-        starts = [h.T for h in out] + [prior, np.eye(4)]
-        for T in starts:
-            h = self._icp(T, depth, kf_depth, pyramid=True)
-            if h is not None:
-                out.append(h)
-        return out
-
-    def _dense(self, prior: np.ndarray, frame: Frame) -> Hypothesis | None:
-        """Dense photometric alignment of the keyframe to the frame from ``prior`` (``perception.dense``)."""
-        assert self._kf_gray is not None and self._kf_depth is not None
-        E, E_inv = self.estimator.E, self.estimator.E_inv  # body -> colour camera
-        ref_depth = depth_in_color(self._kf_depth, self.camera, scale=2)
-        result = align(self._kf_gray, ref_depth, gray_image(frame), self.camera.color, inverse(E @ prior @ E_inv))
-        if result is None:
-            return None
-        cfg = self.config
-        return Hypothesis("dense", E_inv @ inverse(result.T) @ E, cfg.icp_sigma_m, cfg.icp_sigma_deg, result.pixels)
 
     def _prediction(self, timestamp: float, kf_pose: np.ndarray) -> np.ndarray:
         """``T_kf_frame`` predicted by constant velocity from the last posed step (the last pose without one)."""
@@ -304,30 +272,6 @@ class VisualOdometry:
             return T_kf_last
         step, dt = self._velocity
         return T_kf_last @ scaled_motion(step, (timestamp - self._last_time) / dt if dt > 0 else 1.0)
-
-    def _icp(
-        self, T: np.ndarray, depth: np.ndarray, ref_depth: np.ndarray, pyramid: bool, like: Hypothesis | None = None
-    ) -> Hypothesis | None:
-        """Depth point-to-plane ICP from ``T`` (coarse to fine when ``pyramid``); None when it fails or leaves a
-        motion direction unconstrained (a plain wall, a corridor): a pose from depth alone (not refining
-        ``like``, a feature pose) must end near its start (``icp_max_travel_*``) and not depend on where ICP
-        starts (``icp_max_ambiguity_m``)."""
-        K = self.camera.depth
-        result = icp_pyramid(depth, ref_depth, K, T) if pyramid else icp_refine(depth, ref_depth, K, T)
-        if result is None:
-            return None
-        cfg = self.config
-        if like is None:
-            if degenerate_directions(result.information) > 0:
-                return None
-            travel_m, travel_rad = motion_magnitude(relative(T, result.T))
-            if travel_m > cfg.icp_max_travel_m or math.degrees(travel_rad) > cfg.icp_max_travel_deg:
-                return None  # beyond the coarsest level's reach: ICP jumped to another minimum
-            if icp_ambiguity(depth, ref_depth, K, result) > cfg.icp_max_ambiguity_m:
-                return None  # depth alone leaves a direction free: the motion along it would be a guess
-        if like is not None:  # a refinement of the features' pose: its method and evidence
-            return Hypothesis(like.method, result.T, like.sigma_m, like.sigma_deg, like.inliers, refined=True)
-        return Hypothesis("icp", result.T, cfg.icp_sigma_m, cfg.icp_sigma_deg, result.inliers)
 
     def _skip_edges(self, features: Features, depth: np.ndarray) -> list[tuple[int, np.ndarray, float, float]]:
         """Extra factors to the keyframes before the previous one: (how many back, T_old_new, sigmas)."""

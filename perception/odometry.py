@@ -70,6 +70,13 @@ class OdometrySettings(BaseModel):
         description="fallback: a pose is used only when at least this fraction of the frame's depth points "
         "lands on the keyframe's surface (perception.icp.depth_agreement)",
     )
+    fallback_override_m: float = Field(
+        default=0.10,
+        gt=0,
+        description="fallback: a candidate replaces a feature pose that passed its own checks only when it lies "
+        "farther than this from it (and agrees more with the depth)",
+    )
+    fallback_override_deg: float = Field(default=5.0, gt=0, description="... or is turned more than this from it")
     icp_max_ambiguity_m: float = Field(
         default=0.01,
         gt=0,
