@@ -14,7 +14,7 @@ from perception.camera import Intrinsics
 from perception.dense import align
 from perception.frame import CameraModel, Frame
 from perception.hypotheses import Hypothesis
-from perception.icp import degenerate_directions, icp_ambiguity, icp_pyramid, icp_refine
+from perception.icp import degenerate_directions, icp_ambiguity, icp_pyramid
 from perception.odometry import (
     FeatureExtractor,
     Features,
@@ -35,18 +35,13 @@ def icp_hypothesis(
     T: np.ndarray,
     depth: np.ndarray,
     ref_depth: np.ndarray,
-    pyramid: bool = False,
-    like: Hypothesis | None = None,
 ) -> Hypothesis | None:
-    """Depth point-to-plane ICP from ``T`` (coarse to fine when ``pyramid``); None when it fails. A refinement of
-    ``like`` (a feature pose) keeps its method and evidence. A pose from depth alone must not leave a motion
-    direction unconstrained (a plain wall, a corridor), must end near its start (``icp_max_travel_*``) and
-    must not depend on where ICP starts (``icp_max_ambiguity_m``)."""
-    result = icp_pyramid(depth, ref_depth, K, T) if pyramid else icp_refine(depth, ref_depth, K, T)
+    """A pose from depth alone: coarse-to-fine point-to-plane ICP from ``T``; None when it fails, leaves a
+    motion direction unconstrained (a plain wall, a corridor), ends far from its start (``icp_max_travel_*``)
+    or depends on where ICP starts (``icp_max_ambiguity_m``)."""
+    result = icp_pyramid(depth, ref_depth, K, T)
     if result is None:
         return None
-    if like is not None:
-        return Hypothesis(like.method, result.T, like.sigma_m, like.sigma_deg, like.inliers, refined=True)
     if degenerate_directions(result.information) > 0:
         return None
     travel_m, travel_rad = motion_magnitude(relative(T, result.T))
@@ -89,7 +84,7 @@ class FallbackChain:
             if h is not None:
                 out.append(h)
         for T in [h.T for h in out] + [prior, np.eye(4)]:
-            h = icp_hypothesis(self.camera.depth, cfg, T, depth, kf_depth, pyramid=True)
+            h = icp_hypothesis(self.camera.depth, cfg, T, depth, kf_depth)
             if h is not None:
                 out.append(h)
         return out

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from graph.geometry import inverse, motion_magnitude, relative
-from perception.fallback import FallbackChain, icp_hypothesis
+from perception.fallback import FallbackChain
 from perception.frame import CameraModel, Frame
 from perception.hypotheses import Hypothesis, Method, scaled_motion
 from perception.icp import (
@@ -229,17 +229,13 @@ class VisualOdometry:
                 scored.append((depth_agreement(depth, kf_depth, self.camera.depth, h.T).fraction, h))
 
         if primary is not None:
-            refined = (
-                icp_hypothesis(self.camera.depth, cfg, primary.T, depth, kf_depth, like=primary) if cfg.icp else None
-            )
             # an ICP correction within the gate replaces the features' pose; a larger one is not used: PnP and
             # depth ICP disagree by centimetres when colour and depth are misregistered (7-Scenes), and the
             # loop closures are PnP too (letting ICP compete by agreement took 7-Scenes from 4.07 to 5.98 cm)
-            use_refined = refined is not None and self._small_correction(primary.T, refined.T)
-            consider(refined if use_refined else primary)
+            consider(replace(primary, T=self._refine(primary.T, depth, kf_depth)))
         best = max(scored, key=lambda x: x[0]) if scored else None
         if best is not None and best[0] >= cfg.min_agreement:
-            return self._chosen(best[1])
+            return best[1]
         if cfg.fallback:
             assert self._kf_features is not None
             prior = self._prediction(frame.timestamp, kf_pose)
@@ -249,9 +245,9 @@ class VisualOdometry:
                     consider(h)
             best = max(scored, key=lambda x: x[0]) if scored else None
             if best is not None and best[0] >= cfg.min_agreement:
-                return self._chosen(best[1])
+                return best[1]
         if primary is not None:  # the features' own checks passed: kept (scored first)
-            return self._chosen(scored[0][1])
+            return scored[0][1]
         return None
 
     def _far_from(self, primary: Hypothesis, h: Hypothesis) -> bool:
@@ -260,10 +256,6 @@ class VisualOdometry:
         a little higher than a sound feature pose; a feature pose tens of centimetres off is another matter."""
         dt, dr = motion_magnitude(relative(primary.T, h.T))
         return dt > self.config.fallback_override_m or math.degrees(dr) > self.config.fallback_override_deg
-
-    def _chosen(self, h: Hypothesis) -> Hypothesis:
-        self.icp_used += int(h.refined)
-        return h
 
     def _prediction(self, timestamp: float, kf_pose: np.ndarray) -> np.ndarray:
         """``T_kf_frame`` predicted by constant velocity from the last posed step (the last pose without one)."""

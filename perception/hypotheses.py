@@ -24,7 +24,6 @@ class Hypothesis:
     sigma_m: float
     sigma_deg: float
     inliers: int = 0
-    refined: bool = False  # ICP from another hypothesis of the same method
 
 
 def scaled_motion(T: np.ndarray, factor: float) -> np.ndarray:
