@@ -29,6 +29,10 @@ RobotOpt = Annotated[str | None, typer.Option("--robot", help="robot name: keys 
 ConnectOpt = Annotated[list[str] | None, typer.Option("--connect", help="zenoh endpoint to connect to")]
 ListenOpt = Annotated[list[str] | None, typer.Option("--listen", help="zenoh endpoint to listen on")]
 ModeOpt = Annotated[str | None, typer.Option("--mode", help="zenoh mode: peer, client or router")]
+ZenohConfigOpt = Annotated[
+    Path | None,
+    typer.Option("--zenoh-config", help="native zenoh configuration file (TLS, authentication, access control)"),
+]
 
 
 class LcSource(StrEnum):
@@ -52,6 +56,7 @@ def _settings(
     listen: list[str] | None = None,
     mode: str | None = None,
     state_dir: Path | None = None,
+    zenoh_config: Path | None = None,
 ) -> Settings:
     overrides: dict[str, Any] = {}
     zenoh_over: dict[str, Any] = {}
@@ -65,6 +70,8 @@ def _settings(
         zenoh_over["listen"] = listen
     if mode:
         zenoh_over["mode"] = mode
+    if zenoh_config:
+        zenoh_over["config_file"] = zenoh_config
     if zenoh_over:
         overrides["zenoh"] = zenoh_over
     return load_settings(config, overrides)
@@ -96,11 +103,13 @@ def serve(
     ] = None,
     lc_source: Annotated[LcSource | None, typer.Option("--lc-source")] = None,
     lc_policy: Annotated[Path | None, typer.Option("--lc-policy")] = None,
+    zenoh_config: ZenohConfigOpt = None,
 ) -> None:
     """Run the long-lived mapping service (until SIGINT / SIGTERM)."""
     from service.run import serve as serve_forever
 
-    serve_forever(_with_lc(_settings(config, robot, connect, listen, mode, state_dir), lc_source, lc_policy))
+    settings = _settings(config, robot, connect, listen, mode, state_dir, zenoh_config)
+    serve_forever(_with_lc(settings, lc_source, lc_policy))
 
 
 StrideOpt = Annotated[int | None, typer.Option("--stride", help="every N-th frame only (the dataset option stride=N)")]
@@ -133,6 +142,7 @@ def replay(
     stride: StrideOpt = None,
     drop: DropOpt = None,
     drop_seed: DropSeedOpt = None,
+    zenoh_config: ZenohConfigOpt = None,
 ) -> None:
     """Publish a dataset's frames to a running service (protocol v1)."""
     from service.replay import Replayer, frame_publisher
@@ -143,7 +153,7 @@ def replay(
         raise UserError("--rate and --max-rate are exclusive")
     if rate is not None and rate <= 0:
         raise UserError(f"--rate must be positive (got {rate:g})")
-    settings = _settings(config, robot, connect, None, mode)
+    settings = _settings(config, robot, connect, None, mode, zenoh_config=zenoh_config)
     data = open_dataset(
         _view_spec(dataset, stride, drop, drop_seed),
         _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy),
@@ -167,11 +177,12 @@ def save(
     config: ConfigOpt = None,
     timeout: Annotated[float, typer.Option("--timeout", help="seconds to wait for the files")] = 120.0,
     as_json: Annotated[bool, typer.Option("--json", help="print the JSON reply")] = False,
+    zenoh_config: ZenohConfigOpt = None,
 ) -> None:
     """Ask a running service to write its outputs (trajectory, objects, loops, report, map) into its state dir."""
     from service.client import query
 
-    reply = query(_settings(config, robot, connect, None, mode), "save", timeout)
+    reply = query(_settings(config, robot, connect, None, mode, zenoh_config=zenoh_config), "save", timeout)
     if as_json:
         print(json.dumps(reply, indent=1))
     else:
@@ -189,11 +200,12 @@ def status(
     connect: ConnectOpt = None,
     mode: ModeOpt = None,
     config: ConfigOpt = None,
+    zenoh_config: ZenohConfigOpt = None,
 ) -> None:
     """Query a running service (status, objects, trajectory or loops)."""
     from service.client import query, render_reply
 
-    settings = _settings(config, robot, connect, None, mode)
+    settings = _settings(config, robot, connect, None, mode, zenoh_config=zenoh_config)
     reply = query(settings, what.value)
     if as_json:
         print(json.dumps(reply, indent=1))

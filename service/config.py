@@ -37,6 +37,11 @@ class ZenohSettings(BaseModel):
     multicast_scouting: bool = Field(False, description="multicast discovery (off: loopback-only deployments)")
     key_prefix: str = "objslam"
     query_timeout_s: float = 5.0
+    config_file: Path | None = Field(
+        None,
+        description="a native zenoh configuration file (JSON5): TLS / mTLS, user-password authentication, "
+        "access control. It decides the transport; mode, listen and connect given here (or as flags) override it",
+    )
 
 
 class IngestSettings(Limits):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import re
+from pathlib import Path
 
 import zenoh
 
@@ -13,6 +14,8 @@ from service.config import ZenohSettings
 def zenoh_config(settings: ZenohSettings, role: str, embedded: bool = False) -> zenoh.Config:
     """A zenoh Config for ``role``: "server" listens on ``listen``; "client" connects to ``connect``
     (or, when that is empty, to the server's ``listen`` endpoints). ``embedded``: no endpoints at all."""
+    if settings.config_file is not None:
+        return _from_file(settings, role, embedded)
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(settings.mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
@@ -31,11 +34,37 @@ def zenoh_config(settings: ZenohSettings, role: str, embedded: bool = False) -> 
     return conf
 
 
+def _from_file(settings: ZenohSettings, role: str, embedded: bool) -> zenoh.Config:
+    """The native configuration file, with only the transport fields set explicitly here on top of it."""
+    assert settings.config_file is not None
+    path = Path(settings.config_file)
+    if not path.is_file():
+        raise ConnectionError(f"zenoh configuration file not found: {path}")
+    try:
+        conf = zenoh.Config.from_file(str(path))
+    except zenoh.ZError as exc:
+        raise ConnectionError(f"zenoh configuration file {path} is invalid: {_one_line(exc)}") from None
+    explicit = settings.model_fields_set
+    if "mode" in explicit:
+        conf.insert_json5("mode", json.dumps(settings.mode))
+    if embedded:
+        conf.insert_json5("listen/endpoints", "[]")
+    elif "listen" in explicit and role == "server":
+        conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    if "connect" in explicit and not embedded:
+        conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
+    return conf
+
+
+def _one_line(exc: Exception) -> str:
+    return re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", " ".join(str(exc).split()))
+
+
 def open_session(settings: ZenohSettings, role: str, embedded: bool = False) -> zenoh.Session:
     """Open a session; raises ConnectionError with one clear line when zenoh refuses."""
     try:
         return zenoh.open(zenoh_config(settings, role, embedded))
     except zenoh.ZError as exc:
-        reason = re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", " ".join(str(exc).split()))
+        reason = _one_line(exc)
         endpoints = settings.connect or settings.listen
         raise ConnectionError(f"cannot open zenoh session (mode {settings.mode}, {endpoints}): {reason}") from None
