@@ -94,6 +94,7 @@ class Reason(str, Enum):  # noqa: UP042 - str() of a member stays "Reason.X" as 
     TOO_LARGE = "too_large"
     DUPLICATE_TIMESTAMP = "duplicate_timestamp"
     OUT_OF_ORDER = "out_of_order"
+    TIME_JUMP = "time_jump"
     EMPTY_DEPTH = "empty_depth"
     NO_ODOMETRY = "no_odometry"
     ODOMETRY_JUMP = "odometry_jump"

@@ -56,6 +56,13 @@ class KeyframeSettings(BaseModel):
         "since the previous frame from the previous frame's is rejected (odometry_jump)",
     )
     max_speed_mps: float = Field(default=10.0, ge=0, description="external odometry: see max_jump_m")
+    max_time_jump_s: float = Field(
+        default=60.0,
+        gt=0,
+        description="a frame stamped more than this after the last accepted one is rejected (time_jump), unless "
+        "time_jump_frames such frames in a row, each within this of the one before, start a new time reference",
+    )
+    time_jump_frames: int = Field(default=3, ge=2, description="see max_time_jump_s")
 
     def implausible(self, previous: np.ndarray, pose: np.ndarray, dt: float) -> bool:
         """External odometry that moved farther than ``max_jump_m`` + ``max_speed_mps`` * dt from the previous
@@ -90,9 +97,12 @@ class ExternalOdometry:
         self._since = 0
 
     def track(self, frame: Frame) -> Step:
-        pose = frame.odometry
-        if pose is None:
+        if frame.odometry is None:
             raise ValueError("external odometry needs frames that carry odometry")
+        return self.track_pose(frame.odometry)
+
+    def track_pose(self, pose: np.ndarray) -> Step:
+        """The step of a frame whose odometry pose is ``pose``."""
         if self._kf_pose is None:
             self._kf_pose, self._since = pose, 0
             return Step(pose, True, method="odometry")
@@ -104,6 +114,10 @@ class ExternalOdometry:
             self._kf_pose, self._since = pose, 0
             return Step(pose, True, rel, method="odometry")
         return Step(pose, False, method="odometry")
+
+    def continue_from(self, kf_pose: np.ndarray | None, since: int) -> None:
+        """The last keyframe (made by another front end) is at ``kf_pose``, ``since`` frames ago."""
+        self._kf_pose, self._since = kf_pose, since
 
     def state(self) -> dict:
         """Plain tracking state (the last keyframe's pose, frames since it)."""
@@ -314,6 +328,26 @@ class VisualOdometry:
         self._velocity = None
         self._last_time = frame.timestamp
         return self._new_keyframe(self._last_pose, features, depth, frame, step)
+
+    @property
+    def started(self) -> bool:
+        """There is a keyframe to track from."""
+        return self._kf_pose is not None
+
+    def follow(self, frame: Frame, pose: np.ndarray, keyframe: bool) -> None:
+        """``frame`` was posed at ``pose`` by another source; at a keyframe it becomes this front end's keyframe
+        too (its features extracted), so that the next frame can be tracked visually against it."""
+        self._posed(frame, Step(pose, keyframe))
+        if keyframe:
+            features = self.extractor.extract(frame)
+            self._new_keyframe(pose, features, frame.depth_m(), frame, Step(pose, True, lost=True))
+
+    def restart(self, frame: Frame, pose: np.ndarray) -> Step:
+        """Start tracking again at ``frame``, whose pose is only known to be near ``pose`` (the frames in between
+        were posed by another source): a lost keyframe, which the core relocalizes or starts a segment with."""
+        features = self.extractor.extract(frame)
+        self._last_pose, self._velocity = pose, None
+        return self._lost(frame, features, frame.depth_m(), Rejected("source_switch"))
 
     def reanchor(self, pose: np.ndarray) -> None:
         """The current keyframe's odometry pose is ``pose`` (after relocalization placed it in the map)."""

@@ -30,6 +30,9 @@ class OdometrySettings(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
+    visual: bool = Field(
+        default=True, description="track frames without odometry visually (off: they are rejected as no_odometry)"
+    )
     n_features: int = Field(default=1500, ge=100)
     ratio: float = Field(default=0.8, gt=0, le=1, description="Lowe ratio test")
     min_matches: int = Field(default=30, ge=6)

@@ -75,6 +75,7 @@ def tracking_health(core: SlamCore) -> dict[str, Any]:
         "segments_unjoined": segments.unjoined(),
         "joins": segments.joins,
         "relocalizations": segments.relocalizations,
+        "time_resets": core.clock.resets,
         "untied_frames": seq_ranges([r.seq for r in core.untied_frames()]),
     }
 

@@ -3,8 +3,10 @@
 A snapshot is ``<state_dir>/snapshots/snapshot-<n>.bin`` (n increasing): a 48-byte header (magic
 ``OBJSLAM1``, payload length as uint64 little-endian, SHA-256 of the payload) and the payload, a pickle
 (protocol 5, arrays out of band: see ``encode``) of plain data: numbers, strings, numpy arrays and
-objslam's own dataclasses. It is read back with an unpickler that admits nothing else, so a snapshot
-cannot run code.
+objslam's own dataclasses. It is read back with an unpickler that admits nothing else (plain names only,
+each resolved object checked, no module imported on the file's word), so a snapshot cannot run code. The
+SHA-256 in the header detects accidents (a torn write, a flipped bit), not tampering: the unpickler is what
+makes a crafted file harmless.
 
 Writing goes to a temporary file in the same directory, fsync, ``os.replace``, fsync of the directory;
 then all but the newest ``keep`` snapshots are deleted. A crash at any point leaves the previous
@@ -23,12 +25,15 @@ import os
 import pickle
 import re
 import struct
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from service.config import ConfigError
 
@@ -77,9 +82,19 @@ class _PlainUnpickler(pickle.Unpickler):
 
     def find_class(self, module: str, name: str) -> Any:
         module = MOVED.get(module, module)
-        if (module, name) in _ALLOWED or module == "numpy.dtypes":
+        # Pickle protocol 4 resolves a dotted name attribute by attribute, and a walk like
+        # ``numpy.dtypes`` + ``__builtins__.get`` reaches eval: only plain public names are looked up, and
+        # what they resolve to is checked before it is returned.
+        # Modules are never imported on the file's word: objslam's own must be loaded already.
+        if (module, name) in _ALLOWED:
             return super().find_class(module, name)
-        if module.startswith(_OWN_PACKAGES):
+        if not name.isidentifier() or name.startswith("_"):
+            raise SnapshotError(f"snapshot refers to {module}.{name}, which is not plain data")
+        if module == "numpy.dtypes":  # the dtype classes (numpy >= 2 pickles dtypes by them)
+            cls = super().find_class(module, name)
+            if isinstance(cls, type) and issubclass(cls, np.dtype):
+                return cls
+        elif module.startswith(_OWN_PACKAGES) and module in sys.modules:
             cls = super().find_class(module, name)
             if isinstance(cls, type) and (dataclasses.is_dataclass(cls) or issubclass(cls, enum.Enum)):
                 return cls

@@ -8,9 +8,10 @@ from graph.object_landmarks import ObjectLandmarks
 from graph.window import WindowedGraph
 from loops.closer import LoopCloser
 from perception.frame import CameraModel
-from perception.frontend import ExternalOdometry, VisualOdometry
+from perception.frontend import VisualOdometry
 from perception.object_map import ObjectMapper
 from perception.odometry import FeatureExtractor, RelativePoseEstimator
+from perception.odometry_choice import PerFrameOdometry
 from rl.proposer import PolicyProposer
 from slam.core import SlamCore, Tracking, TrackingFactory
 from slam.runner import Runner
@@ -27,11 +28,17 @@ def load_proposer(path: Path | None, radius: int, candidates: int) -> PolicyProp
 
 
 def tracking_factory(settings: SlamConfig, graph: WindowedGraph) -> TrackingFactory:
-    """Builds the front end (external or visual odometry) and loop closure for the first frame's camera."""
+    """Builds the front end (each frame's own odometry, else visual odometry) and loop closure for the first
+    frame's camera."""
     policy, odometry = settings.keyframes, settings.odometry
 
     def build(camera: CameraModel, external: bool) -> Tracking:
-        frontend = ExternalOdometry(policy) if external else VisualOdometry(camera, policy, odometry)
+        def visual() -> VisualOdometry:
+            return VisualOdometry(camera, policy, odometry)
+
+        frontend = PerFrameOdometry(policy, visual if odometry.visual else None)
+        if odometry.visual:  # built now: it follows the odometry frames, ready to take over when it drops out
+            frontend.visual = visual()
         if settings.loops.source == "off":
             return Tracking(camera, frontend)
         loops = LoopCloser(graph, RelativePoseEstimator(camera, odometry), settings.loops)

@@ -1,8 +1,9 @@
 """The SLAM core: one frame in, what changed out (SPEC 6.4-6.9). No threads, no zenoh, no disk.
 
-Per frame (``SlamCore.step``): (1) reject stale or duplicate timestamps and unusable depth; (2) the front end
-gives the odometry pose and decides keyframes: the frames' own odometry when the stream carries it (decided
-by the first frame), else RGB-D visual odometry; (3) a keyframe adds its odometry factors to the graph;
+Per frame (``SlamCore.step``): (1) reject stale, duplicate or implausibly far timestamps (``slam.clock``) and
+unusable depth; (2) the front end gives the odometry pose and decides keyframes: the frame's own odometry when
+it can be chained, else RGB-D visual odometry (``perception.odometry_choice``); (3) a keyframe adds its
+odometry factors to the graph;
 (4) the mapping of the keyframe ``MAPPING_LAG`` keyframes back is applied: its landmark measurements and
 verified loop candidates; (5) this keyframe's mapping stages are handed to the runner (``slam.stages``:
 detection, objects, loop verification); (6) every frame is recorded relative to its keyframe, so the whole
@@ -30,12 +31,14 @@ from graph.window import WindowedGraph
 from loops.closer import LoopCloser
 from loops.records import Candidate, KeyframeEntry, LoopRecord, Source
 from perception.frame import CameraModel, Detection, Frame, FrameRejected, Reason
-from perception.frontend import ExternalOdometry, Step, VisualOdometry
+from perception.frontend import Step
 from perception.object_map import ObjectMapper, object_json
 from perception.odometry import FeatureExtractor
+from perception.odometry_choice import PerFrameOdometry
 from perception.registration import map_points
 from rl.proposer import PolicyProposer
 from slam import relocalization, stages
+from slam.clock import StreamClock
 from slam.records import FrameRecord, KeyframeLoops, KeyframeObjects, StepResult
 from slam.repose import repose_due
 from slam.runner import Done, Handle, InlineRunner, Lane, Runner
@@ -59,7 +62,7 @@ class Tracking:
     """The components that depend on the camera, built when the first frame arrives."""
 
     camera: CameraModel
-    frontend: ExternalOdometry | VisualOdometry
+    frontend: PerFrameOdometry
     loops: LoopCloser | None = None
     extractor: FeatureExtractor | None = None
 
@@ -103,13 +106,14 @@ class SlamCore:
         self.timings: dict[str, float] = {}
         self.tracking_lost = self.mapping_errors = self.reposes = self.object_map_version = 0
         self.segments = Segments()
+        self.clock = StreamClock(settings.keyframes.max_time_jump_s, settings.keyframes.time_jump_frames)
         self.tracking_state = TrackingState.TRACKING
         self.methods: Counter[str] = Counter()  # frames per tracking method (perception.hypotheses.Method)
 
     # ------------------------------------------------------------ per frame
 
     @property
-    def frontend(self) -> ExternalOdometry | VisualOdometry | None:
+    def frontend(self) -> PerFrameOdometry | None:
         return self.tracking.frontend if self.tracking is not None else None
 
     @property
@@ -124,10 +128,6 @@ class SlamCore:
         """Add one frame; raises FrameRejected (counted by the caller) when it cannot be used."""
         self.timings = {}
         self._check(frame)
-        if self.tracking is None:
-            if frame.odometry is None:
-                log.info("frames carry no odometry: using RGB-D visual odometry")
-            self.connect(self.tracking_factory(frame.camera, frame.odometry is not None))
         assert self.tracking is not None
         version, n_loops = self.object_map_version, len(self.loops.records) if self.loops is not None else 0
         t0 = time.perf_counter()
@@ -141,6 +141,7 @@ class SlamCore:
             offset = np.linalg.inv(self.kf_odometry[kf]) @ step.pose
             record = FrameRecord(frame.timestamp, frame.seq, kf, False, step.pose, offset, step.posed)
         self.records.append(record)
+        self.clock.accept(frame.timestamp)
         self.methods[step.method] += 1
         self.tracking_state = TrackingState.of(step, self.segments.tied(record.keyframe))
         return StepResult(
@@ -152,19 +153,13 @@ class SlamCore:
         )
 
     def _check(self, frame: Frame) -> None:
-        if frame.timestamp == self.last_timestamp:
-            raise FrameRejected(Reason.DUPLICATE_TIMESTAMP, f"timestamp {frame.timestamp} already processed")
-        if frame.timestamp < self.last_timestamp:
-            raise FrameRejected(Reason.OUT_OF_ORDER, f"timestamp {frame.timestamp} < {self.last_timestamp}")
+        self.clock.check(frame.timestamp)
         if not np.any(frame.depth):
             raise FrameRejected(Reason.EMPTY_DEPTH, "depth image has no valid pixel")
-        frontend = self.frontend
-        if isinstance(frontend, ExternalOdometry):
-            if frame.odometry is None:
-                raise FrameRejected(Reason.NO_ODOMETRY, "this stream carries odometry but the frame has none")
-            dt = frame.timestamp - self.last_timestamp
-            if self.records and frontend.policy.implausible(self.records[-1].odometry, frame.odometry, dt):
-                raise FrameRejected(Reason.ODOMETRY_JUMP, "odometry jumped implausibly far since the last frame")
+        if self.tracking is None:
+            self.connect(self.tracking_factory(frame.camera, frame.odometry is not None))
+        assert self.tracking is not None
+        self.tracking.frontend.check(frame, frame.timestamp - self.last_timestamp)
 
     def connect(self, tracking: Tracking) -> None:
         """Use ``tracking``'s components; loop closures between map segments join them."""
@@ -181,8 +176,8 @@ class SlamCore:
             kf = self.graph.add_first(step.pose)
             self.segments.add_keyframe(kf)
         elif step.lost:
-            frontend = self.frontend
-            assert isinstance(frontend, VisualOdometry)  # external odometry is never lost
+            assert self.tracking is not None
+            frontend = self.tracking.frontend
             kf = relocalization.place_lost(
                 self.graph, self.segments, self.loops, frame, step, self.kf_odometry, frontend.config
             )

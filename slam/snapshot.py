@@ -14,7 +14,6 @@ import numpy as np
 
 from graph.window import WindowedGraph
 from loops.records import LoopRecord, Verified
-from perception.frontend import ExternalOdometry
 from slam.build import build_core
 from slam.core import SlamCore
 from slam.records import FrameRecord, KeyframeLoops
@@ -33,7 +32,7 @@ def core_state(core: SlamCore) -> dict[str, Any]:
         "objects_view": core.objects_view,
         "mapping_errors": core.mapping_errors,
         "camera": tracking.camera if tracking is not None else None,
-        "external_odometry": isinstance(tracking.frontend, ExternalOdometry) if tracking else False,
+        "external_odometry": tracking.frontend.last == "odometry" if tracking else False,
         "frontend": tracking.frontend.state() if tracking is not None else None,
         "graph": core.graph.state(),
         "records": {
@@ -48,6 +47,7 @@ def core_state(core: SlamCore) -> dict[str, Any]:
         "kf_odometry": np.array(core.kf_odometry).reshape(-1, 4, 4),
         "kf_points": core.kf_points,
         "tracking_lost": core.tracking_lost,
+        "clock": core.clock.state(),
         "segments": core.segments.state(),
         "tracking_state": core.tracking_state.value,
         "methods": dict(core.methods),
@@ -83,7 +83,13 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
     core = build_core(settings, runner, graph)
     if state["camera"] is not None:
         tracking = core.tracking_factory(state["camera"], state["external_odometry"])
-        tracking.frontend.restore(state["frontend"])
+        saved = state["frontend"]
+        if "external" in saved:
+            tracking.frontend.restore(saved)
+        else:  # saved when the first frame decided the source: that front end's own state
+            odometry = state["records"]["odometry"]
+            last = odometry[-1] if len(odometry) else None
+            tracking.frontend.restore_single(state["external_odometry"], saved, last)
         if tracking.loops is not None and state["loops"] is not None:
             tracking.loops.restore(state["loops"])
         core.connect(tracking)
@@ -98,6 +104,7 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
         FrameRecord(float(t), int(s), int(k), bool(kf), odo, off, bool(p))
         for (t, s, k, kf, odo, off), p in zip(rows, posed, strict=True)
     ]
+    core.clock.restore(state.get("clock", {}), core.records[-1].timestamp if core.records else None)
     core.kf_odometry = list(state["kf_odometry"])
     core.kf_points = list(state.get("kf_points", []))
     core.tracking_lost = state["tracking_lost"]

@@ -14,7 +14,7 @@ from tests.conftest import REDKITCHEN, make_frame, requires_redkitchen
 
 
 def test_stream_with_odometry_reproduces_it_and_rejects_bad_timestamps():
-    p = build_core(load_settings(None, {"loops": {"source": "off"}}))
+    p = build_core(load_settings(None, {"loops": {"source": "off"}, "odometry": {"visual": False}}))
     for i in range(20):
         p.step(make_frame(t=1.0 + i, seq=i))
     traj = p.trajectory()
