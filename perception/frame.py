@@ -92,6 +92,7 @@ class Reason(str, Enum):  # noqa: UP042 - str() of a member stays "Reason.X" as 
     BAD_IMAGE = "bad_image"
     BAD_DETECTIONS = "bad_detections"
     TOO_LARGE = "too_large"
+    RATE_LIMITED = "rate_limited"
     DUPLICATE_TIMESTAMP = "duplicate_timestamp"
     OUT_OF_ORDER = "out_of_order"
     TIME_JUMP = "time_jump"

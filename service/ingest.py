@@ -1,4 +1,5 @@
-"""The bounded ingest queue: zenoh callbacks enqueue raw payloads, the worker thread takes them."""
+"""The bounded ingest queue: zenoh callbacks inspect each message (no pixel decoded) and enqueue the valid
+ones; the decoder thread decodes their images. Garbage is refused before it can displace a good frame."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ from collections import deque
 from dataclasses import dataclass
 
 from perception.frame import Frame, FrameRejected
-from service.protocol import Limits, decode_frame
+from service.protocol import Inspected, Limits, decode_images, inspect_message
 from service.stats import ServiceStats
 
 log = logging.getLogger(__name__)
@@ -17,9 +18,9 @@ log = logging.getLogger(__name__)
 
 @dataclass
 class Ingested:
-    """A raw message and the monotonic time it arrived."""
+    """An inspected message and the monotonic time it arrived."""
 
-    payload: bytes
+    message: Inspected
     received: float
 
 
@@ -35,14 +36,14 @@ class IngestQueue:
         self._cond = threading.Condition()
         self.dropped = 0
 
-    def put(self, payload: bytes) -> bool:
+    def put(self, message: Inspected, received: float | None = None) -> bool:
         """Enqueue; returns True when the oldest item had to be dropped to make room."""
         with self._cond:
             dropped = len(self._items) >= self.capacity
             if dropped:
                 self._items.popleft()
                 self.dropped += 1
-            self._items.append(Ingested(payload, time.monotonic()))
+            self._items.append(Ingested(message, time.monotonic() if received is None else received))
             self._cond.notify_all()
             return dropped
 
@@ -80,11 +81,24 @@ class IngestQueue:
             return len(self._items)
 
 
-def decode_counted(payload: bytes, limits: Limits, stats: ServiceStats) -> Frame | None:
-    """The decoded frame, or None when it was rejected (counted by reason) or decoding failed (counted)."""
+def inspect_counted(payload: bytes, limits: Limits, stats: ServiceStats) -> Inspected | None:
+    """The inspected message, or None when it was rejected (counted by reason) or inspection failed (counted)."""
+    try:
+        return inspect_message(payload, limits)
+    except FrameRejected as exc:
+        stats.count_rejected(exc.reason.value)
+        log.debug("rejected frame: %s", exc)
+    except Exception:  # the inspection must survive anything a message can trigger
+        log.exception("unexpected error while inspecting a frame")
+        stats.count_error("internal")
+    return None
+
+
+def decode_counted(message: Inspected, stats: ServiceStats) -> Frame | None:
+    """The decoded frame, or None when its images were rejected (counted by reason) or decoding failed (counted)."""
     t0 = time.monotonic()
     try:
-        frame = decode_frame(payload, limits)
+        frame = decode_images(message)
     except FrameRejected as exc:
         stats.count_rejected(exc.reason.value)
         log.debug("rejected frame: %s", exc)

@@ -16,6 +16,7 @@ import queue
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -25,12 +26,15 @@ from graph.geometry import pose_to_tum
 from graph.pose_graph import SolverError
 from graph.trajectory import Trajectory
 from perception.frame import Frame
+from service.budget import TokenBucket
 from service.config import Settings
-from service.ingest import IngestQueue, decode_counted
+from service.ingest import IngestQueue, decode_counted, inspect_counted
+from service.labels import LabelVocabulary
 from service.map_summary import MapSummary, loop_events, summarize
 from service.outputs import run_summary, write_outputs
 from service.persistence import Persistence
-from service.protocol import VERSION, FrameRejected
+from service.protocol import VERSION, FrameRejected, Reason
+from service.replies import CachedReply
 from service.save_requests import SaveRequests
 from service.scheduler import ThreadedRunner
 from service.stats import ServiceStats
@@ -59,7 +63,21 @@ class ServiceNode:
         self._stop = threading.Event()
         self._frame_done = threading.Condition()  # notified after each frame is processed, rejected or failed
         self._decoded: queue.Queue[tuple[Frame, float]] = queue.Queue(maxsize=2)  # decoder -> worker
-        self.saves = SaveRequests(settings.robot, self.prefix, settings.state_dir, self.write_outputs)
+        self.service_id = str(session.zid())
+        limits = settings.ingest
+        self.saves = SaveRequests(
+            settings.robot,
+            self.prefix,
+            settings.state_dir,
+            self.write_outputs,
+            limits.min_save_interval_s,
+            self.service_id,
+        )
+        self.labels = LabelVocabulary(limits.labels, limits.extra_labels, limits.max_detections)
+        self.frame_budget = TokenBucket(limits.max_frame_rate_hz, limits.max_frame_rate_hz)
+        self.query_budget = TokenBucket(limits.max_queries_per_s, limits.max_queries_per_s)
+        self._summary_version = 0
+        self._replies = self._cached_replies()
         self._saved_completed = 0  # frames completed (processed, rejected, failed, dropped) in the newest snapshot
         self._last_version = 0
         self._accepted_loops: set[int] = set()  # factor indices of the accepted loops last published
@@ -85,13 +103,8 @@ class ServiceNode:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         s, p = self.session, self.prefix
         self._entities.append(s.declare_subscriber(f"{p}/rgbd", self._on_frame))  # first: ``stop`` relies on it
-        for name, handler in (
-            ("status", self.status),
-            ("trajectory", self.trajectory_reply),
-            ("objects", self.objects_reply),
-            ("loops", self.loops_reply),
-        ):
-            self._entities.append(s.declare_queryable(f"{p}/{name}", self._replier(name, handler)))
+        for name in self._replies:
+            self._entities.append(s.declare_queryable(f"{p}/{name}", self._replier(name)))
         self._entities.append(s.declare_queryable(f"{p}/save", self.saves.enqueue))
         self.events = s.declare_publisher(f"{p}/events")
         self._entities.append(self.events)
@@ -183,8 +196,20 @@ class ServiceNode:
         self.submit(sample.payload.to_bytes())
 
     def submit(self, payload: bytes) -> None:
-        """Enqueue a raw message (what the subscriber callback does); never blocks."""
-        if self.queue.put(payload):
+        """Inspect a raw message and enqueue it when valid (what the subscriber callback does); never blocks.
+
+        Everything that needs no pixel decoded is checked here, before queuing, so a flood of garbage or of
+        decompression bombs is refused at once and never displaces a good frame from the queue."""
+        received = time.monotonic()
+        message = inspect_counted(payload, self.limits, self.stats)
+        if message is None:
+            self._completed_one()
+            return
+        if not self.frame_budget.take():
+            self.stats.count_rejected(Reason.RATE_LIMITED.value)
+            self._completed_one()
+            return
+        if self.queue.put(message, received):
             log.debug("ingest queue full: dropped the oldest frame")
 
     def _decode_loop(self) -> None:
@@ -193,10 +218,11 @@ class ServiceNode:
             item = self.queue.get(timeout=0.1)
             if item is None:
                 continue
-            frame = decode_counted(item.payload, self.limits, self.stats)
+            frame = decode_counted(item.message, self.stats)
             if frame is None:
                 self._completed_one()
                 continue
+            frame = self.labels.apply(frame)
             while True:
                 try:
                     self._decoded.put((frame, item.received), timeout=0.1)
@@ -311,6 +337,7 @@ class ServiceNode:
         summary = summarize(self.core, self._summary)
         with self._summary_lock:
             self._summary = summary
+            self._summary_version += 1
 
     @property
     def summary(self) -> MapSummary:
@@ -348,14 +375,46 @@ class ServiceNode:
             out, traj, odom, summary, None, self.objects_reply()["objects"], self.loops_reply()["loops"], cloud
         )
 
-    def _replier(self, name: str, handler):
+    def _cached_replies(self) -> dict[str, CachedReply]:
+        """The queryables' replies, each recomputed once per change of what it shows (``service.replies``)."""
+        versions: dict[str, Callable[[], Any]] = {
+            "status": lambda: (self._summary_version, self.stats.received, self.completed, self.queue.depth),
+            "trajectory": lambda: self._summary_version,
+            "objects": lambda: self.summary.objects_key,
+            "loops": lambda: self.summary.loops_key,
+        }
+        handlers: dict[str, Callable[[], dict[str, Any]]] = {
+            "status": self.status,
+            "trajectory": self.trajectory_reply,
+            "objects": self.objects_reply,
+            "loops": self.loops_reply,
+        }
+        return {name: CachedReply(self._serializer(handlers[name]), versions[name]) for name in handlers}
+
+    def reply_bytes(self, name: str) -> bytes:
+        """The reply of queryable ``name`` as sent (``status``, ``trajectory``, ``objects``, ``loops``)."""
+        return self._replies[name].get()
+
+    def _serializer(self, handler: Callable[[], dict[str, Any]]) -> Callable[[], bytes]:
+        def serialize() -> bytes:
+            return json.dumps({"service_id": self.service_id, **handler()}).encode()
+
+        return serialize
+
+    def _replier(self, name: str) -> Callable[[zenoh.Query], None]:
+        """The queryable's callback: the cached reply (``service.replies``), or 'busy' beyond the query budget."""
+        cached = self._replies[name]
+
         def reply(query: zenoh.Query) -> None:
             try:
-                body = json.dumps(handler())
-                query.reply(f"{self.prefix}/{name}", body.encode(), encoding=zenoh.Encoding.APPLICATION_JSON)
+                if not self.query_budget.take():
+                    error = {"error": "busy: too many queries (ingest.max_queries_per_s)"}
+                    query.reply_err(json.dumps({**error, "service_id": self.service_id}).encode())
+                    return
+                query.reply(f"{self.prefix}/{name}", cached.get(), encoding=zenoh.Encoding.APPLICATION_JSON)
             except Exception as exc:  # a failing query must not take the service down
                 log.exception("query %s failed", name)
-                query.reply_err(json.dumps({"error": str(exc)}).encode())
+                query.reply_err(json.dumps({"error": str(exc), "service_id": self.service_id}).encode())
 
         return reply
 
@@ -371,6 +430,9 @@ class ServiceNode:
             queue_capacity=self.queue.capacity,
             uptime_s=round(time.time() - self._started, 3),
             persistence=self.persistence.status() if self.persistence is not None else None,
+            service_id=self.service_id,
+            labels=self.labels.counters(),
+            refused={"queries_busy": self.query_budget.refused, "saves_busy": self.saves.busy},
         )
         return snap
 

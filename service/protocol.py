@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import struct
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -24,6 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from graph.geometry import is_rigid, pose_from_tum, pose_to_tum
 from perception.frame import CameraModel, Detection, Frame, FrameRejected, Intrinsics, Reason
+from service.image_probe import ProbeError, probe
 
 MAGIC = b"OSLM"
 VERSION = 1
@@ -40,8 +42,30 @@ class Limits(BaseModel):
 
     model_config = ConfigDict(frozen=True, extra="forbid")
 
-    max_payload_bytes: int = Field(64 * 1024 * 1024, ge=1024)
-    max_image_pixels: int = Field(4096 * 4096, ge=1)
+    max_payload_bytes: int = Field(32 * 1024 * 1024, ge=1024)
+    max_image_pixels: int = Field(
+        2048 * 1536,
+        ge=1,
+        description="colour or depth images larger than this are rejected (too_large), judged by the size the "
+        "frame header and the image's own header declare, before anything is decoded",
+    )
+    max_frame_rate_hz: float = Field(
+        1000.0,
+        gt=0,
+        description="valid frames on the robot's key beyond this rate (1 s burst) are rejected as rate_limited "
+        "(zenoh does not name a sample's publisher: who may publish is the access control's to decide)",
+    )
+    labels: tuple[str, ...] | None = Field(
+        None, description="the detection labels kept as they are; default the detector's classes (COCO-80)"
+    )
+    extra_labels: int = Field(32, ge=0, description="other labels admitted, first come; any later one is 'other'")
+    max_detections: int = Field(100, ge=1, description="a frame's best-scored detections kept, the rest dropped")
+    max_queries_per_s: float = Field(
+        1000.0, gt=0, description="queries beyond this rate (1 s burst) are answered 'busy' (status, map queries)"
+    )
+    min_save_interval_s: float = Field(
+        5.0, ge=0, description="a save request sooner than this after the last one is answered 'busy'"
+    )
 
 
 DEFAULT_LIMITS = Limits()
@@ -120,8 +144,45 @@ def _encode_depth(depth: np.ndarray, encoding: str) -> bytes:
 # ---------------------------------------------------------------- decoding
 
 
+@dataclass(frozen=True)
+class Inspected:
+    """A message whose header, sizes and images' own headers were checked; its pixels are not decoded yet."""
+
+    timestamp: float
+    seq: int
+    frame_id: str
+    camera: CameraModel
+    color: memoryview
+    color_meta: dict[str, Any]
+    depth: memoryview
+    depth_meta: dict[str, Any]
+    odometry: np.ndarray | None
+    detections: list[Detection] | None
+
+
 def decode_frame(payload: bytes, limits: Limits | None = None) -> Frame:
     """Parse and validate a protocol-v1 message; raises FrameRejected with the first problem found."""
+    return decode_images(inspect_message(payload, limits))
+
+
+def decode_images(message: Inspected) -> Frame:
+    """The frame of an inspected message: its colour and depth images decoded (the costly part)."""
+    return Frame(
+        timestamp=message.timestamp,
+        seq=message.seq,
+        frame_id=message.frame_id,
+        camera=message.camera,
+        rgb=_decode_color(message.color, message.color_meta),
+        depth=_decode_depth(message.depth, message.depth_meta),
+        odometry=message.odometry,
+        detections=message.detections,
+    )
+
+
+def inspect_message(payload: bytes, limits: Limits | None = None) -> Inspected:
+    """Every check that needs no pixel decoded: preamble, header fields, sizes, and the dimensions the encoded
+    images declare in their own headers (``service.image_probe``), so a decompression bomb is refused unread.
+    Cheap enough for zenoh's callback thread; raises FrameRejected with the first problem found."""
     limits = limits or DEFAULT_LIMITS
     if len(payload) > limits.max_payload_bytes:
         raise FrameRejected(Reason.TOO_LARGE, f"{len(payload)} bytes > {limits.max_payload_bytes}")
@@ -138,18 +199,45 @@ def decode_frame(payload: bytes, limits: Limits | None = None) -> Frame:
         raise FrameRejected(Reason.SIZE_MISMATCH, "registered depth must match the camera image size")
     if (color_meta["width"], color_meta["height"]) != (camera.width, camera.height):
         raise FrameRejected(Reason.SIZE_MISMATCH, "colour size differs from camera width/height")
-    rgb = _decode_color(body[: color_meta["size"]], color_meta)
-    depth = _decode_depth(body[color_meta["size"] :], depth_meta)
-    return Frame(
+    view = memoryview(body)
+    color, depth = view[: color_meta["size"]], view[color_meta["size"] :]
+    _check_declared(color, color_meta, "colour", limits)
+    _check_declared(depth, depth_meta, "depth", limits)
+    return Inspected(
         timestamp=_finite(_field(header, "timestamp", (int, float)), "timestamp"),
         seq=_nonnegative_int(header.get("seq", 0), "seq"),
         frame_id=_short_str(header.get("frame_id", ""), "frame_id", 256),
         camera=camera,
-        rgb=rgb,
+        color=color,
+        color_meta=color_meta,
         depth=depth,
+        depth_meta=depth_meta,
         odometry=_parse_odometry(header.get("odometry")),
         detections=_parse_detections(header.get("detections"), camera),
     )
+
+
+def _check_declared(data: memoryview, meta: dict[str, Any], what: str, limits: Limits) -> None:
+    """The encoded image's own header agrees with the frame header: its size, and for depth 16-bit gray."""
+    encoding = meta["encoding"]
+    if encoding in ("rgb8", "u16le"):  # raw: the byte count was checked against width x height
+        expected = meta["width"] * meta["height"] * (3 if encoding == "rgb8" else 2)
+        if len(data) != expected:
+            raise FrameRejected(Reason.SIZE_MISMATCH, f"{encoding} {what} needs {expected} bytes, got {len(data)}")
+        return
+    try:
+        found = probe(data, encoding)
+    except ProbeError as exc:
+        raise FrameRejected(Reason.BAD_IMAGE, f"{what}: {exc}") from None
+    if found.width * found.height > limits.max_image_pixels:
+        raise FrameRejected(Reason.TOO_LARGE, f"{what} image declares {found.width}x{found.height} pixels")
+    if (found.width, found.height) != (meta["width"], meta["height"]):
+        raise FrameRejected(
+            Reason.SIZE_MISMATCH,
+            f"{what} image declares {found.width}x{found.height}, header {meta['width']}x{meta['height']}",
+        )
+    if encoding == "png16" and (found.bit_depth != 16 or found.channels != 1):
+        raise FrameRejected(Reason.BAD_IMAGE, f"depth is not a single-channel 16-bit PNG ({found})")
 
 
 def split_message(payload: bytes) -> tuple[dict[str, Any], bytes]:
@@ -265,7 +353,7 @@ def _parse_image_meta(obj: dict[str, Any], encodings: tuple[str, ...], what: str
     return meta
 
 
-def _decode_color(data: bytes, meta: dict[str, Any]) -> np.ndarray:
+def _decode_color(data: bytes | memoryview, meta: dict[str, Any]) -> np.ndarray:
     h, w = meta["height"], meta["width"]
     if meta["encoding"] == "rgb8":
         if len(data) != h * w * 3:
@@ -279,7 +367,7 @@ def _decode_color(data: bytes, meta: dict[str, Any]) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
 
-def _decode_depth(data: bytes, meta: dict[str, Any]) -> np.ndarray:
+def _decode_depth(data: bytes | memoryview, meta: dict[str, Any]) -> np.ndarray:
     h, w = meta["height"], meta["width"]
     if meta["encoding"] == "u16le":
         if len(data) != h * w * 2:
@@ -318,8 +406,8 @@ def _parse_detections(value: Any, camera: CameraModel) -> list[Detection] | None
         if not isinstance(det, dict):
             raise FrameRejected(Reason.BAD_DETECTIONS, f"detection {i} is not an object")
         label, score, box = det.get("label"), det.get("score"), det.get("box")
-        if not isinstance(label, str) or not 0 < len(label) <= 64:
-            raise FrameRejected(Reason.BAD_DETECTIONS, f"detection {i}: label must be a non-empty string")
+        if not isinstance(label, str) or not 0 < len(label) <= 64 or not label.isprintable():
+            raise FrameRejected(Reason.BAD_DETECTIONS, f"detection {i}: label must be a non-empty printable string")
         if isinstance(score, bool) or not isinstance(score, (int, float)) or not 0.0 <= score <= 1.0:
             raise FrameRejected(Reason.BAD_DETECTIONS, f"detection {i}: score must lie in [0, 1]")
         out.append(Detection(label, float(score), _parse_box(box, i, camera)))

@@ -12,6 +12,8 @@ from typing import Any
 
 import zenoh
 
+from service.budget import TokenBucket
+
 log = logging.getLogger(__name__)
 
 
@@ -19,17 +21,35 @@ class SaveRequests:
     """A bounded queue of ``save`` queries and the worker's answers (the outputs written into the state dir)."""
 
     def __init__(
-        self, robot: str, prefix: str, state_dir: Path | None, write: Callable[[Path], dict[str, Any]], size: int = 4
+        self,
+        robot: str,
+        prefix: str,
+        state_dir: Path | None,
+        write: Callable[[Path], dict[str, Any]],
+        min_interval_s: float = 0.0,
+        service_id: str = "",
     ):
         self.robot, self.prefix, self.state_dir, self.write = robot, prefix, state_dir, write
-        self._queries: queue.Queue[zenoh.Query] = queue.Queue(maxsize=size)
+        self.service_id = service_id
+        self._queries: queue.Queue[zenoh.Query] = queue.Queue(maxsize=1)
+        # one save per interval: each one stops the worker while it writes (a flood of saves dropped frames)
+        self.budget = TokenBucket(1.0 / min_interval_s, 1.0) if min_interval_s > 0 else None
+        self.busy = 0
 
     def enqueue(self, query: zenoh.Query) -> None:
-        """The queryable's callback: only queues the query (or refuses it when too many wait)."""
+        """The queryable's callback: only queues the query, or answers 'busy' when one is waiting or being
+        written, or the last one was less than ``min_interval_s`` ago."""
+        if self.budget is not None and not self.budget.take():
+            self._refuse_busy(query, "the last save was too recent (ingest.min_save_interval_s)")
+            return
         try:
             self._queries.put_nowait(query)
         except queue.Full:
-            query.reply_err(json.dumps({"error": "busy: earlier save requests are still being written"}).encode())
+            self._refuse_busy(query, "a save is already waiting to be written")
+
+    def _refuse_busy(self, query: zenoh.Query, why: str) -> None:
+        self.busy += 1
+        query.reply_err(json.dumps({"error": f"busy: {why}", "service_id": self.service_id}).encode())
 
     def answer(self) -> None:
         """Write the outputs for every waiting query and reply (worker thread, between frames)."""
@@ -55,6 +75,7 @@ class SaveRequests:
         out = Path(self.state_dir)
         summary = self.write(out)
         return {
+            "service_id": self.service_id,
             "robot": self.robot,
             "dir": str(out),
             "files": sorted(path.name for path in out.iterdir() if path.is_file()),

@@ -43,6 +43,7 @@ CLASSES = (
     "bad_pose",
     "duplicate_timestamp",
     "out_of_order",
+    "time_jump",
     "zero_depth",
     "no_odometry",
     "absurd_box",
@@ -339,6 +340,11 @@ class Storm:
         header, body = self.valid()
         header["timestamp"] = self.t - float(self.rng.uniform(1e-6, max(self.t, 1e-6)))
         return pack(header, body), Reason.OUT_OF_ORDER.value
+
+    def time_jump(self) -> Message:
+        header, body = self.valid(advance=False)
+        header["timestamp"] = self.t + float(self.rng.uniform(1e3, 1e15))  # never becomes the reference
+        return pack(header, body), Reason.TIME_JUMP.value
 
     def zero_depth(self) -> Message:
         header, body = self.valid()

@@ -39,6 +39,7 @@ def service():
             "robot": "fuzz",
             "zenoh": {"mode": "peer", "listen": [f"tcp/127.0.0.1:{port}"], "multicast_scouting": False},
             "detector": {"enabled": False},  # good frames carry detections; never load the ONNX model
+            "odometry": {"visual": False},  # the stream carries odometry: a frame without is no_odometry
         },
     )
     server = open_session(settings.zenoh, "server")
@@ -122,7 +123,8 @@ def test_ten_thousand_bad_frames_are_each_counted_by_reason_and_good_frames_keep
     assert status["frames_dropped"] == 0  # paced below the queue capacity
     assert status["frames_processed"] == expected.pop(PROCESSED)
     assert status["frames_rejected"] == dict(expected)
-    assert set(expected) == {reason.value for reason in Reason}  # the storm exercised every reason
+    # the storm exercised every reason but the rate limit (tests/test_hostile.py floods for that one)
+    assert set(expected) == {reason.value for reason in Reason} - {Reason.RATE_LIMITED.value}
     poses = _get(client, f"{prefix}/trajectory")["poses"]
     assert len(poses) == status["frames_processed"]
 

@@ -18,12 +18,10 @@ from sources import open_dataset
 from tests.conftest import make_frame
 
 
-class _NoSession:
-    """Stands in for a zenoh session: the node is driven through ``submit`` and its worker, no entities."""
-
-
 def test_status_objects_and_loops_answer_while_the_pipeline_is_busy():
-    node = ServiceNode(load_settings(None, {"detector": {"enabled": False}}), _NoSession())
+    settings = load_settings(None, {"detector": {"enabled": False}})
+    session = open_session(settings.zenoh, "server", embedded=True)  # no entities: driven through ``submit``
+    node = ServiceNode(settings, session)
     node.start_threads()
     try:
         for i in range(3):  # what the subscriber callback does
@@ -31,11 +29,13 @@ def test_status_objects_and_loops_answer_while_the_pipeline_is_busy():
             node.submit(encode_frame(make_frame(t=1.0 + 0.1 * i, seq=i), "rgb8", "u16le"))
         assert node.wait_done(3, timeout=30.0)
         assert node.status()["frames_processed"] == 3 and node.status()["keyframes"] >= 1
+        assert len(json.loads(node.reply_bytes("trajectory"))["poses"]) == 3  # computed once, then cached
         with node.hold_core():  # the worker holding the core for a long frame
             replies = {}
 
             def query() -> None:
                 replies.update(status=node.status(), objects=node.objects_reply(), loops=node.loops_reply())
+                replies["trajectory"] = json.loads(node.reply_bytes("trajectory"))
 
             thread = threading.Thread(target=query)
             thread.start()
@@ -43,8 +43,11 @@ def test_status_objects_and_loops_answer_while_the_pipeline_is_busy():
             assert not thread.is_alive(), "a reply waited for the core's lock"
         assert replies["status"]["frames_processed"] == 3
         assert replies["objects"]["objects"] == [] and replies["loops"]["loops"] == []
+        assert len(replies["trajectory"]["poses"]) == 3
+        assert replies["status"]["service_id"] == str(session.zid())
     finally:
         assert node.stop_threads(timeout=5)
+        session.close()
 
 
 def test_loop_events_name_each_accepted_loop_once_and_each_retraction():
