@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from graph.geometry import pose_from_tum
 from perception.frame import FrameRejected
@@ -175,3 +177,258 @@ def test_a_crafted_snapshot_is_refused_without_running_code(tmp_path, attack):
     assert not marker.exists()
     assert restored == []  # nothing usable: a new map
     assert persistence.status()["skipped_snapshots"][0]["reason"].startswith("snapshot refers to")
+
+
+# ---------------------------------------------------------------- bounded decoding
+
+
+def _patched_jpeg(jpeg: bytes, width: int, height: int) -> bytes:
+    """``jpeg`` with its SOF0 frame header declaring ``width`` x ``height``."""
+    at = jpeg.index(b"\xff\xc0")
+    return jpeg[: at + 5] + height.to_bytes(2, "big") + width.to_bytes(2, "big") + jpeg[at + 9 :]
+
+
+def _patched_png(png: bytes, width: int, height: int) -> bytes:
+    """``png`` with its IHDR declaring ``width`` x ``height`` (and a correct CRC, as a real encoder's)."""
+    import zlib
+
+    ihdr = b"IHDR" + width.to_bytes(4, "big") + height.to_bytes(4, "big") + png[24:29]
+    return png[:12] + ihdr + zlib.crc32(ihdr).to_bytes(4, "big") + png[33:]
+
+
+def _message_with(color: bytes | None = None, depth: bytes | None = None) -> bytes:
+    """A valid 64 x 48 frame message (jpeg colour, png16 depth) with its colour or depth bytes replaced."""
+    import json as _json
+
+    from service.protocol import PREAMBLE, encode_frame, split_message
+    from tests.conftest import make_frame
+
+    header, body = split_message(encode_frame(make_frame(t=1.0)))
+    c, d = body[: header["color"]["size"]], body[header["color"]["size"] :]
+    c, d = color if color is not None else c, depth if depth is not None else d
+    header["color"]["size"], header["depth"]["size"] = len(c), len(d)
+    head = _json.dumps(header).encode()
+    return PREAMBLE.pack(b"OSLM", 1, 0, len(head)) + head + c + d
+
+
+def _parts() -> tuple[bytes, bytes]:
+    from service.protocol import encode_frame, split_message
+    from tests.conftest import make_frame
+
+    header, body = split_message(encode_frame(make_frame(t=1.0)))
+    return body[: header["color"]["size"]], body[header["color"]["size"] :]
+
+
+@pytest.fixture
+def no_decoding(monkeypatch):
+    """Fails the test if any image is decoded (a bomb must be refused from its header alone)."""
+    import cv2
+
+    def refuse(*_args, **_kw):
+        raise AssertionError("an image was decoded")
+
+    monkeypatch.setattr(cv2, "imdecode", refuse)
+
+
+DIMENSION = st.integers(min_value=1, max_value=65535)
+
+
+@settings(max_examples=60, deadline=None)
+@given(width=DIMENSION, height=DIMENSION, which=st.sampled_from(["jpeg", "png16"]))
+def test_an_image_declaring_another_size_is_refused_before_decoding(width, height, which):
+    import cv2
+
+    from service.protocol import inspect_message
+
+    color, depth = _parts()
+    if which == "jpeg":
+        message = _message_with(color=_patched_jpeg(color, width, height))
+    else:
+        message = _message_with(depth=_patched_png(depth, width, height))
+    decoded = []
+    original = cv2.imdecode
+    cv2.imdecode = lambda *a, **k: decoded.append(1) or original(*a, **k)  # a spy
+    try:
+        if (width, height) == (64, 48):
+            inspect_message(message)  # its own size: accepted
+        else:
+            with pytest.raises(FrameRejected) as info:
+                inspect_message(message)
+            expected = "too_large" if width * height > 2048 * 1536 else "size_mismatch"
+            assert info.value.reason.value == expected
+    finally:
+        cv2.imdecode = original
+    assert decoded == []
+
+
+def _png16_zeros(width: int, height: int) -> bytes:
+    """A genuine 16-bit grayscale PNG of zeros (rows compressed as they are generated)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    z = zlib.compressobj(9)
+    row = bytes(1 + 2 * width)
+    idat = b"".join(z.compress(row) for _ in range(height)) + z.flush()
+    ihdr = struct.pack(">IIBBBBB", width, height, 16, 0, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
+
+
+def test_a_real_png_bomb_is_refused_undecoded(no_decoding):
+    from service.protocol import inspect_message
+
+    bomb = _png16_zeros(6000, 6000)  # 72 MB of pixels in a few kB
+    assert len(bomb) < 200_000
+    with pytest.raises(FrameRejected) as info:
+        inspect_message(_message_with(depth=bomb))
+    assert info.value.reason.value == "too_large"
+
+
+def test_a_jpeg_with_thousands_of_scans_is_refused(no_decoding):
+    from service.protocol import inspect_message
+
+    color, _ = _parts()
+    end = color.rindex(b"\xff\xd9")
+    scans = color[:end] + b"\xff\xda\x00\x08\x01\x01\x00\x00\x3f\x00\x00" * 5000 + b"\xff\xd9"
+    with pytest.raises(FrameRejected) as info:
+        inspect_message(_message_with(color=scans))
+    assert info.value.reason.value == "bad_image"
+
+
+# ---------------------------------------------------------------- labels
+
+
+def test_labels_outside_the_vocabulary_are_bounded_and_markup_is_plain_text():
+    from perception.frame import Detection
+    from service.labels import LabelVocabulary
+
+    vocab = LabelVocabulary(None, extra=4, max_detections=100)
+    frames = []
+    from tests.conftest import make_frame
+
+    for i in range(60):
+        frame = make_frame(t=float(i), seq=i)
+        frame.detections = [Detection(f"[/x]{i}-{k}", 0.5, (5.0, 6.0, 20.0, 30.0)) for k in range(512)]
+        frames.append(vocab.apply(frame))
+    labels = {d.label for f in frames for d in f.detections or []}
+    assert len(labels) == 5 and "other" in labels  # 4 admitted, then every fresh label is 'other'
+    assert all(len(f.detections or []) == 100 for f in frames)
+    assert vocab.relabelled == 60 * 100 - 4 and vocab.dropped == 60 * 412
+    assert vocab.label("cup") == "cup"  # the detector's classes are always kept
+
+
+def test_a_label_with_control_characters_is_rejected():
+    import json as _json
+
+    from service.protocol import PREAMBLE, encode_frame, inspect_message, split_message
+    from tests.conftest import make_frame
+
+    header, body = split_message(encode_frame(make_frame(t=1.0)))
+    header["detections"][0]["label"] = "cup\x1b[2J"
+    head = _json.dumps(header).encode()
+    with pytest.raises(FrameRejected) as info:
+        inspect_message(PREAMBLE.pack(b"OSLM", 1, 0, len(head)) + head + body)
+    assert info.value.reason.value == "bad_detections"
+
+
+# ---------------------------------------------------------------- over real zenoh: floods, queries, saves
+
+
+@pytest.fixture
+def served(tmp_path):
+    """A service node listening on 127.0.0.1 and a second peer connected to it."""
+    from service.node import ServiceNode
+    from service.zenoh_session import open_session
+    from tests.conftest import free_port
+
+    settings = load_settings(
+        None,
+        {
+            "robot": "hostile",
+            "state_dir": tmp_path / "state",
+            "zenoh": {"listen": [f"tcp/127.0.0.1:{free_port()}"]},
+            "detector": {"enabled": False},
+            "loops": {"source": "off"},
+            "ingest": {"queue_size": 8, "max_queries_per_s": 50, "min_save_interval_s": 60},
+        },
+    )
+    server = open_session(settings.zenoh, "server")
+    node = ServiceNode(settings, server)
+    node.start()
+    client = open_session(settings.zenoh, "client")
+    yield node, client
+    client.close()
+    node.stop()
+    server.close()
+
+
+def _replies(session, key: str, timeout: float = 10.0) -> list[tuple[bool, dict]]:
+    import json as _json
+
+    out = []
+    for reply in session.get(key, timeout=timeout):
+        ok = reply.ok is not None
+        out.append((ok, _json.loads((reply.ok if ok else reply.err).payload.to_bytes())))
+    return out
+
+
+def test_a_garbage_flood_at_ten_times_the_frame_rate_never_displaces_a_good_frame(served):
+    import os
+    import time
+
+    from service.protocol import encode_frame
+    from tests.conftest import make_frame
+
+    node, client = served
+    color, _ = _parts()
+    garbage = [
+        b"JUNK" + os.urandom(2000),
+        os.urandom(64),
+        _message_with(color=_patched_jpeg(color, 30000, 30000)),
+        _message_with(depth=_png16_zeros(3000, 3000)),
+        b"\x00" * 1_000_000,
+    ]
+    pub = client.declare_publisher("objslam/hostile/rgbd")
+    good = 30
+    for i in range(good):
+        while node.stats.processed < i - 4:  # at most 4 good frames in flight: the queue of 8 holds them
+            time.sleep(0.005)
+        pub.put(encode_frame(make_frame(t=1.0 + 0.1 * i, seq=i)))
+        for k in range(10):
+            pub.put(garbage[(i + k) % len(garbage)])
+    assert node.wait_done(good * 11, timeout=60.0)
+    status = node.status()
+    assert status["frames_processed"] == good and status["frames_dropped"] == 0
+    assert status["frames_rejected_total"] == good * 10
+    assert set(status["frames_rejected"]) == {"bad_magic", "too_large"}
+    pub.undeclare()
+
+
+def test_queries_beyond_the_budget_are_answered_busy_and_none_times_out(served):
+    from concurrent.futures import ThreadPoolExecutor
+
+    node, client = served
+    with ThreadPoolExecutor(8) as pool:
+        results = list(pool.map(lambda _: _replies(client, "objslam/hostile/status"), range(200)))
+    assert all(len(r) == 1 for r in results)  # every query answered, by one service
+    busy = [body for r in results for ok, body in r if not ok]
+    assert busy and all(body["error"].startswith("busy") for body in busy)
+    assert {body["service_id"] for r in results for _, body in r} == {node.service_id}
+    assert node.status()["refused"]["queries_busy"] == len(busy)
+
+
+def test_a_second_save_within_the_interval_is_answered_busy(served, tmp_path):
+    from service.protocol import encode_frame
+    from tests.conftest import make_frame
+
+    node, client = served
+    node.submit(encode_frame(make_frame(t=1.0)))
+    node.stats.count_received()
+    assert node.wait_done(1, timeout=30.0)
+    (first,) = _replies(client, "objslam/hostile/save", timeout=60.0)
+    (second,) = _replies(client, "objslam/hostile/save", timeout=60.0)
+    assert first[0] and "trajectory.tum" in first[1]["files"]
+    assert not second[0] and second[1]["error"].startswith("busy")
+    assert node.status()["refused"]["saves_busy"] == 1
