@@ -39,6 +39,8 @@ from service.config import ConfigError
 
 log = logging.getLogger(__name__)
 
+FIRST_BACKOFF_S, MAX_BACKOFF_S = 1.0, 300.0
+"""After a failed snapshot write the next periodic one waits this long, doubling up to the maximum."""
 MAGIC = b"OBJSLAM1"
 HEADER = struct.Struct("<8sQ32s")
 TABLE = struct.Struct("<QQ")
@@ -243,6 +245,8 @@ class Persistence:
         self.resumed_from: dict[str, Any] | None = None
         self.skipped: list[tuple[str, str]] = []
         self._saved = (0, 0)  # (keyframes, frames processed) of the newest snapshot
+        self._backoff_s = self._retry_at = 0.0  # after a failed write: the wait before the next try, and its end
+        self.last_error: str | None = None
 
     def resume(self, restore: Callable[[dict[str, Any]], None]) -> bool:
         """Call ``restore`` with the newest good snapshot's state; one it fails on counts as bad too.
@@ -275,8 +279,9 @@ class Persistence:
         return False
 
     def due(self, keyframes: int) -> bool:
-        """True once ``every_keyframes`` keyframes were added since the newest snapshot."""
-        return keyframes - self._saved[0] >= self.every_keyframes
+        """True once ``every_keyframes`` keyframes were added since the newest snapshot, and no failed write
+        is waiting out its backoff (a full or read-only disk is not retried after every frame)."""
+        return keyframes - self._saved[0] >= self.every_keyframes and time.monotonic() >= self._retry_at
 
     def changed(self, keyframes: int, frames: int) -> bool:
         """True when there is work that the newest snapshot does not hold."""
@@ -300,8 +305,14 @@ class Persistence:
             written = self.store.write(payload)
         except OSError as exc:
             self.failed += 1
-            log.error("could not write a snapshot in %s: %s", self.store.directory, exc)
+            self._backoff_s = min(MAX_BACKOFF_S, self._backoff_s * 2 if self._backoff_s else FIRST_BACKOFF_S)
+            self._retry_at = time.monotonic() + self._backoff_s
+            self.last_error = str(exc)
+            log.error(
+                "could not write a snapshot in %s: %s; next try in %.0f s", self.store.directory, exc, self._backoff_s
+            )
             return None
+        self._backoff_s, self._retry_at, self.last_error = 0.0, 0.0, None
         self.written += 1
         self._saved = (keyframes, frames)
         self.last = {
@@ -329,6 +340,8 @@ class Persistence:
             "every_keyframes": self.every_keyframes,
             "snapshots_written": self.written,
             "failed_writes": self.failed,
+            "last_error": self.last_error,
+            "retry_in_s": round(max(0.0, self._retry_at - time.monotonic()), 1) if self.last_error else None,
             "last_snapshot": self.last,
             "resumed_from": self.resumed_from,
             "skipped_snapshots": [{"file": f, "reason": r} for f, r in self.skipped],

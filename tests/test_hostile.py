@@ -432,3 +432,31 @@ def test_a_second_save_within_the_interval_is_answered_busy(served, tmp_path):
     assert first[0] and "trajectory.tum" in first[1]["files"]
     assert not second[0] and second[1]["error"].startswith("busy")
     assert node.status()["refused"]["saves_busy"] == 1
+
+
+# ---------------------------------------------------------------- faults
+
+
+def test_failing_snapshot_writes_back_off_exponentially_and_are_reported(tmp_path):
+    import shutil
+    import time
+
+    from service.persistence import Persistence
+
+    persistence = Persistence(tmp_path / "state", "robot1", every_keyframes=1)
+    shutil.rmtree(persistence.store.directory)
+    persistence.store.directory.write_text("not a directory")  # every write now fails, even as root
+    payload = persistence.capture(5, 50, {"x": np.zeros(3)})
+    assert persistence.due(5)
+    assert persistence.save(payload, 5, 50) is None
+    status = persistence.status()
+    assert status["failed_writes"] == 1 and status["last_error"] and 0 < status["retry_in_s"] <= 1.0
+    assert not persistence.due(6)  # waits out the backoff instead of retrying after every frame
+    time.sleep(1.05)
+    assert persistence.due(6) and persistence.save(payload, 6, 60) is None
+    assert 1.0 < persistence.status()["retry_in_s"] <= 2.0  # doubled
+    persistence.store.directory.unlink()
+    persistence.store.directory.mkdir()
+    time.sleep(2.05)
+    assert persistence.due(7) and persistence.save(payload, 7, 70) is not None
+    assert persistence.status()["last_error"] is None and persistence.status()["retry_in_s"] is None
