@@ -197,3 +197,51 @@ def test_image_copies_every_package_onto_the_pinned_python():
     (base,) = _instructions("FROM")
     version = re.fullmatch(r"python:(\d+\.\d+)-slim", base).group(1)
     assert f">={version}" in project["project"]["requires-python"]
+
+
+def test_secure_compose_command_lines_are_valid_and_reach_the_tls_router_with_their_own_certificates(monkeypatch):
+    """deploy/secure/: each objslam command line (and the image's healthcheck, and `run operator save`) parses, its
+    zenoh config file is mounted from deploy/secure/, connects over tls to a port the router listens on, and reads
+    only certificates mounted into its own container; the router accepts tls with client certificates only."""
+    import zenoh
+
+    secure = DEPLOY / "secure"
+    services = yaml.safe_load((secure / "docker-compose.yml").read_text())["services"]
+    assert services[ROUTER]["image"] == _compose()["services"][ROUTER]["image"]
+
+    def config_of(name: str, path: str) -> zenoh.Config:
+        mounts = dict(v.split(":")[1::-1] for v in services[name].get("volumes", []) if v.startswith("./"))
+        assert path in mounts, f"{name}: {path} is not mounted"
+        conf = zenoh.Config.from_file(str(secure / mounts[path]))
+        tls = json.loads(conf.get_json("transport/link/tls"))
+        files = {tls[k] for k in tls if k.endswith(("certificate", "private_key")) and tls[k] is not None}
+        assert json.loads(conf.get_json("transport/link/protocols")) == ["tls"] and tls["enable_mtls"] is True
+        assert {f"/run/secrets/{s}" for s in services[name]["secrets"]} == files, name
+        return conf
+
+    router = config_of(ROUTER, services[ROUTER]["command"][services[ROUTER]["command"].index("-c") + 1])
+    ports = {int(e.rsplit(":", 1)[1]) for e in json.loads(router.get_json("listen/endpoints"))}
+    assert all(e.startswith("tls/") for e in json.loads(router.get_json("listen/endpoints")))
+    image, service_env = _image_env(), services["objslam"]["environment"]
+    containers = {
+        "objslam": (services["objslam"]["command"], service_env),
+        "objslam healthcheck": (_healthcheck()[1][1:], service_env),
+        "replay": (services["replay"]["command"], services["replay"]["environment"]),
+        "operator": (services["operator"]["command"], services["operator"]["environment"]),
+        "operator save": (["save"], services["operator"]["environment"]),
+    }
+    robots = set()
+    for container, (args, env) in containers.items():
+        command, params, settings = effective_settings(args, {**image, **env}, monkeypatch)
+        # effective_settings leaves --zenoh-config out of the settings: the flag and the environment must agree
+        flag, from_env = params.get("zenoh_config"), settings.zenoh.config_file
+        assert (flag or from_env) and (flag is None or from_env is None or flag == from_env), container
+        conf = config_of(container.split()[0], str(flag or from_env))
+        assert settings.zenoh.mode == "client" == json.loads(conf.get_json("mode")), container
+        for endpoint in [*settings.zenoh.connect, *json.loads(conf.get_json("connect/endpoints"))]:
+            proto, host, port = re.fullmatch(r"(\w+)/([\w.-]+):(\d+)", endpoint).groups()
+            assert (proto, host) == ("tls", ROUTER) and int(port) in ports, container
+        if command == "replay":
+            assert len(open_dataset(params["dataset"])) > 0
+        robots.add(settings.robot)
+    assert robots == {"robot1"}
