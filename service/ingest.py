@@ -9,7 +9,8 @@ import time
 from collections import deque
 from dataclasses import dataclass
 
-from perception.frame import Frame, FrameRejected
+from perception.frame import Frame, FrameRejected, Reason
+from service.budget import TokenBucket
 from service.protocol import Inspected, Limits, decode_images, inspect_message
 from service.stats import ServiceStats
 
@@ -79,6 +80,22 @@ class IngestQueue:
     def __len__(self) -> int:
         with self._cond:
             return len(self._items)
+
+
+class Gate:
+    """What the subscriber callback does before queuing: inspect the message and spend the frame budget."""
+
+    def __init__(self, limits: Limits, stats: ServiceStats):
+        self.limits, self.stats = limits, stats
+        self.budget = TokenBucket(limits.max_frame_rate_hz, limits.max_frame_rate_hz)
+
+    def admit(self, payload: bytes) -> Inspected | None:
+        """The inspected message, or None when it was rejected (counted by reason)."""
+        message = inspect_counted(payload, self.limits, self.stats)
+        if message is not None and not self.budget.take():
+            self.stats.count_rejected(Reason.RATE_LIMITED.value)
+            return None
+        return message
 
 
 def inspect_counted(payload: bytes, limits: Limits, stats: ServiceStats) -> Inspected | None:

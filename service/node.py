@@ -1,22 +1,21 @@
 """The service node: zenoh subscriber and queryables wired to the ingest queue and the SLAM core.
 
-Zenoh callbacks only enqueue bytes or serialise a reply. A decoder thread takes raw messages from the ingest
-queue and validates and decodes them (PNG/JPEG decoding releases the GIL), handing at most two decoded frames
-to the worker thread, which runs the SLAM core: decoding the next frame overlaps processing this one.
-After each frame the worker publishes an immutable ``MapSummary`` that the ``status``, ``objects`` and ``loops``
-queryables read without waiting; only ``trajectory`` (computed on demand) takes the core's lock. With a state
-directory the node resumes from its newest good snapshot and writes one every N keyframes and on ``stop``.
+The subscriber callback inspects each message (``ingest.Gate``: no pixel decoded) and queues the valid ones; a
+decoder thread decodes their images (releasing the GIL), handing at most two frames to the worker thread,
+which runs the SLAM core. After each frame the worker publishes an immutable ``MapSummary``; the queryables
+answer from it through a per-version reply cache (``service.replies``), never waiting for the frame being
+processed. With a state directory the node resumes from its newest good snapshot and writes one every N
+keyframes and on ``stop``.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 import queue
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Hashable
 from pathlib import Path
 from typing import Any
 
@@ -26,15 +25,15 @@ from graph.geometry import pose_to_tum
 from graph.pose_graph import SolverError
 from graph.trajectory import Trajectory
 from perception.frame import Frame
-from service.budget import TokenBucket
-from service.config import Settings
-from service.ingest import IngestQueue, decode_counted, inspect_counted
+from service.config import IngestSettings, Settings
+from service.events import MapEvents
+from service.ingest import Gate, IngestQueue, decode_counted
 from service.labels import LabelVocabulary
-from service.map_summary import MapSummary, loop_events, summarize
+from service.map_summary import MapSummary, summarize
 from service.outputs import run_summary, write_outputs
 from service.persistence import Persistence
-from service.protocol import VERSION, FrameRejected, Reason
-from service.replies import CachedReply
+from service.protocol import VERSION, FrameRejected
+from service.replies import Replies
 from service.save_requests import SaveRequests
 from service.scheduler import ThreadedRunner
 from service.stats import ServiceStats
@@ -58,30 +57,18 @@ class ServiceNode:
         self.core = build_core(settings, ThreadedRunner())  # keyframe stages on the scheduler's threads
         self.limits = settings.ingest  # the decoder's bounds are fields of the ingest section
         self._lock = threading.Lock()  # guards the SLAM core between the worker and the trajectory queryable
-        self._summary_lock = threading.Lock()  # guards only the swap of ``_summary``
-        self._summary = MapSummary()
+        self._summary_lock = threading.Lock()  # guards only the swap of ``_summary`` (and its version)
+        self._summary, self._summary_version = MapSummary(), 0
         self._stop = threading.Event()
         self._frame_done = threading.Condition()  # notified after each frame is processed, rejected or failed
         self._decoded: queue.Queue[tuple[Frame, float]] = queue.Queue(maxsize=2)  # decoder -> worker
         self.service_id = str(session.zid())
-        limits = settings.ingest
-        self.saves = SaveRequests(
-            settings.robot,
-            self.prefix,
-            settings.state_dir,
-            self.write_outputs,
-            limits.min_save_interval_s,
-            self.service_id,
-        )
-        self.labels = LabelVocabulary(limits.labels, limits.extra_labels, limits.max_detections)
-        self.frame_budget = TokenBucket(limits.max_frame_rate_hz, limits.max_frame_rate_hz)
-        self.query_budget = TokenBucket(limits.max_queries_per_s, limits.max_queries_per_s)
-        self._summary_version = 0
-        self._replies = self._cached_replies()
+        self.saves = SaveRequests(settings, self.service_id, self.write_outputs)
+        self.labels = LabelVocabulary(self.limits.labels, self.limits.extra_labels, self.limits.max_detections)
+        self.gate = Gate(self.limits, self.stats)
+        self.replies = self._replies(self.limits)
         self._saved_completed = 0  # frames completed (processed, rejected, failed, dropped) in the newest snapshot
-        self._last_version = 0
-        self._accepted_loops: set[int] = set()  # factor indices of the accepted loops last published
-        self._loops_key: tuple[int, int] = (0, 0)
+        self.events = MapEvents()
         self._started = time.time()
         self._entities: list[Any] = []
         self._decoder = threading.Thread(target=self._decode_loop, name="objslam-decoder", daemon=True)
@@ -103,11 +90,11 @@ class ServiceNode:
         sys.setswitchinterval(SWITCH_INTERVAL_S)
         s, p = self.session, self.prefix
         self._entities.append(s.declare_subscriber(f"{p}/rgbd", self._on_frame))  # first: ``stop`` relies on it
-        for name in self._replies:
-            self._entities.append(s.declare_queryable(f"{p}/{name}", self._replier(name)))
+        for name in self.replies.cached:
+            self._entities.append(s.declare_queryable(f"{p}/{name}", self.replies.callback(name)))
         self._entities.append(s.declare_queryable(f"{p}/save", self.saves.enqueue))
-        self.events = s.declare_publisher(f"{p}/events")
-        self._entities.append(self.events)
+        self.events.publisher = s.declare_publisher(f"{p}/events")
+        self._entities.append(self.events.publisher)
         self.start_threads()
         log.info("serving %s (protocol v%d)", p, VERSION)
 
@@ -201,12 +188,8 @@ class ServiceNode:
         Everything that needs no pixel decoded is checked here, before queuing, so a flood of garbage or of
         decompression bombs is refused at once and never displaces a good frame from the queue."""
         received = time.monotonic()
-        message = inspect_counted(payload, self.limits, self.stats)
+        message = self.gate.admit(payload)
         if message is None:
-            self._completed_one()
-            return
-        if not self.frame_budget.take():
-            self.stats.count_rejected(Reason.RATE_LIMITED.value)
             self._completed_one()
             return
         if self.queue.put(message, received):
@@ -267,7 +250,7 @@ class ServiceNode:
             return
         self.stats.time("graph", t2 - t1)
         self._publish_summary()
-        self._publish_changes()
+        self.events.publish(self.summary)
         for stage, seconds in stage_times.items():
             self.stats.time(stage, seconds)
         self.stats.time("ingest_to_graph", t2 - received)
@@ -329,8 +312,8 @@ class ServiceNode:
         self.stats.restore_counters(state["stats"])
         self.queue.dropped = state["frames_dropped"]
         self._saved_completed = self.completed
-        self._last_version = core.object_map_version
-        self._accepted_loops = {r.factor for r in core.loop_records() if r.accepted and r.factor is not None}
+        accepted = {r.factor for r in core.loop_records() if r.accepted and r.factor is not None}
+        self.events.resume(core.object_map_version, accepted)
 
     def _publish_summary(self) -> None:
         """Take the map's counts, objects and loop records for the queryables (worker thread, between frames)."""
@@ -343,24 +326,6 @@ class ServiceNode:
     def summary(self) -> MapSummary:
         with self._summary_lock:
             return self._summary
-
-    def _publish_changes(self) -> None:
-        """``events``: the object map after each re-clustering, the loop closures accepted since the last
-        event, and those retracted since (accepted earlier, removed when later loops contradicted them)."""
-        summary = self.summary
-        events = []
-        if summary.object_map_version != self._last_version:
-            events.append({"type": "objects", "objects": summary.objects})
-            self._last_version = summary.object_map_version
-        if summary.loops_key != self._loops_key:
-            new_events, self._accepted_loops = loop_events(summary.loops, self._accepted_loops)
-            events += new_events
-            self._loops_key = summary.loops_key
-        for event in events:
-            try:
-                self.events.put(json.dumps(event).encode())
-            except zenoh.ZError as exc:
-                log.warning("could not publish event: %s", exc)
 
     # ------------------------------------------------------------ queries
 
@@ -375,48 +340,21 @@ class ServiceNode:
             out, traj, odom, summary, None, self.objects_reply()["objects"], self.loops_reply()["loops"], cloud
         )
 
-    def _cached_replies(self) -> dict[str, CachedReply]:
+    def _replies(self, limits: IngestSettings) -> Replies:
         """The queryables' replies, each recomputed once per change of what it shows (``service.replies``)."""
-        versions: dict[str, Callable[[], Any]] = {
+        versions: dict[str, Callable[[], Hashable]] = {
             "status": lambda: (self._summary_version, self.stats.received, self.completed, self.queue.depth),
             "trajectory": lambda: self._summary_version,
             "objects": lambda: self.summary.objects_key,
             "loops": lambda: self.summary.loops_key,
         }
-        handlers: dict[str, Callable[[], dict[str, Any]]] = {
+        handlers = {
             "status": self.status,
             "trajectory": self.trajectory_reply,
             "objects": self.objects_reply,
             "loops": self.loops_reply,
         }
-        return {name: CachedReply(self._serializer(handlers[name]), versions[name]) for name in handlers}
-
-    def reply_bytes(self, name: str) -> bytes:
-        """The reply of queryable ``name`` as sent (``status``, ``trajectory``, ``objects``, ``loops``)."""
-        return self._replies[name].get()
-
-    def _serializer(self, handler: Callable[[], dict[str, Any]]) -> Callable[[], bytes]:
-        def serialize() -> bytes:
-            return json.dumps({"service_id": self.service_id, **handler()}).encode()
-
-        return serialize
-
-    def _replier(self, name: str) -> Callable[[zenoh.Query], None]:
-        """The queryable's callback: the cached reply (``service.replies``), or 'busy' beyond the query budget."""
-        cached = self._replies[name]
-
-        def reply(query: zenoh.Query) -> None:
-            try:
-                if not self.query_budget.take():
-                    error = {"error": "busy: too many queries (ingest.max_queries_per_s)"}
-                    query.reply_err(json.dumps({**error, "service_id": self.service_id}).encode())
-                    return
-                query.reply(f"{self.prefix}/{name}", cached.get(), encoding=zenoh.Encoding.APPLICATION_JSON)
-            except Exception as exc:  # a failing query must not take the service down
-                log.exception("query %s failed", name)
-                query.reply_err(json.dumps({"error": str(exc), "service_id": self.service_id}).encode())
-
-        return reply
+        return Replies(self.prefix, self.service_id, handlers, versions, limits.max_queries_per_s)
 
     def status(self) -> dict[str, Any]:
         """The ``status`` reply (schema in docs/protocol.md), without waiting for the frame being processed."""
@@ -432,7 +370,7 @@ class ServiceNode:
             persistence=self.persistence.status() if self.persistence is not None else None,
             service_id=self.service_id,
             labels=self.labels.counters(),
-            refused={"queries_busy": self.query_budget.refused, "saves_busy": self.saves.busy},
+            refused={"queries_busy": self.replies.budget.refused, "saves_busy": self.saves.busy},
         )
         return snap
 

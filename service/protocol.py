@@ -21,11 +21,11 @@ from typing import Any
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from graph.geometry import is_rigid, pose_from_tum, pose_to_tum
 from perception.frame import CameraModel, Detection, Frame, FrameRejected, Intrinsics, Reason
 from service.image_probe import ProbeError, probe
+from service.limits import DEFAULT_LIMITS, Limits
 
 MAGIC = b"OSLM"
 VERSION = 1
@@ -35,40 +35,6 @@ DEPTH_ENCODINGS = ("png16", "u16le")
 MAX_DETECTIONS = 512
 MAX_HEADER_BYTES = 1 << 20
 MAX_JSON_INT = 2**63
-
-
-class Limits(BaseModel):
-    """Bounds the decoder enforces on untrusted input (fields of the ``ingest`` settings section)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    max_payload_bytes: int = Field(32 * 1024 * 1024, ge=1024)
-    max_image_pixels: int = Field(
-        2048 * 1536,
-        ge=1,
-        description="colour or depth images larger than this are rejected (too_large), judged by the size the "
-        "frame header and the image's own header declare, before anything is decoded",
-    )
-    max_frame_rate_hz: float = Field(
-        1000.0,
-        gt=0,
-        description="valid frames on the robot's key beyond this rate (1 s burst) are rejected as rate_limited "
-        "(zenoh does not name a sample's publisher: who may publish is the access control's to decide)",
-    )
-    labels: tuple[str, ...] | None = Field(
-        None, description="the detection labels kept as they are; default the detector's classes (COCO-80)"
-    )
-    extra_labels: int = Field(32, ge=0, description="other labels admitted, first come; any later one is 'other'")
-    max_detections: int = Field(100, ge=1, description="a frame's best-scored detections kept, the rest dropped")
-    max_queries_per_s: float = Field(
-        1000.0, gt=0, description="queries beyond this rate (1 s burst) are answered 'busy' (status, map queries)"
-    )
-    min_save_interval_s: float = Field(
-        5.0, ge=0, description="a save request sooner than this after the last one is answered 'busy'"
-    )
-
-
-DEFAULT_LIMITS = Limits()
 
 
 # ---------------------------------------------------------------- encoding

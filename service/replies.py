@@ -9,9 +9,18 @@ bytes. When the map moved on, one query computes the new reply while the others 
 
 from __future__ import annotations
 
+import json
+import logging
 import threading
 import time
 from collections.abc import Callable, Hashable
+from typing import Any
+
+import zenoh
+
+from service.budget import TokenBucket
+
+log = logging.getLogger(__name__)
 
 
 class CachedReply:
@@ -44,3 +53,51 @@ class CachedReply:
             self._body, self._version, self._at = body, version, time.monotonic()
             self.computed += 1
         return body
+
+
+class Replies:
+    """The queryables' callbacks: each reply cached per version, tagged with the service's zenoh id, and
+    'busy' beyond ``max_per_s`` queries a second (1 s burst) so a flood is answered, not queued."""
+
+    def __init__(
+        self,
+        prefix: str,
+        service_id: str,
+        handlers: dict[str, Callable[[], dict[str, Any]]],
+        versions: dict[str, Callable[[], Hashable]],
+        max_per_s: float,
+    ):
+        self.prefix, self.service_id = prefix, service_id
+        self.budget = TokenBucket(max_per_s, max_per_s)
+        self.cached = {
+            name: CachedReply(self._serializer(handler), versions[name]) for name, handler in handlers.items()
+        }
+
+    def body(self, name: str) -> bytes:
+        """The reply of queryable ``name`` as sent."""
+        return self.cached[name].get()
+
+    def _serializer(self, handler: Callable[[], dict[str, Any]]) -> Callable[[], bytes]:
+        def serialize() -> bytes:
+            return json.dumps({"service_id": self.service_id, **handler()}).encode()
+
+        return serialize
+
+    def error(self, message: str) -> bytes:
+        return json.dumps({"error": message, "service_id": self.service_id}).encode()
+
+    def callback(self, name: str) -> Callable[[zenoh.Query], None]:
+        """The queryable's callback for ``name``."""
+        cached = self.cached[name]
+
+        def reply(query: zenoh.Query) -> None:
+            try:
+                if not self.budget.take():
+                    query.reply_err(self.error("busy: too many queries (ingest.max_queries_per_s)"))
+                    return
+                query.reply(f"{self.prefix}/{name}", cached.get(), encoding=zenoh.Encoding.APPLICATION_JSON)
+            except Exception as exc:  # a failing query must not take the service down
+                log.exception("query %s failed", name)
+                query.reply_err(self.error(str(exc)))
+
+        return reply

@@ -13,6 +13,7 @@ from typing import Any
 import zenoh
 
 from service.budget import TokenBucket
+from service.config import Settings
 
 log = logging.getLogger(__name__)
 
@@ -20,15 +21,9 @@ log = logging.getLogger(__name__)
 class SaveRequests:
     """A bounded queue of ``save`` queries and the worker's answers (the outputs written into the state dir)."""
 
-    def __init__(
-        self,
-        robot: str,
-        prefix: str,
-        state_dir: Path | None,
-        write: Callable[[Path], dict[str, Any]],
-        min_interval_s: float = 0.0,
-        service_id: str = "",
-    ):
+    def __init__(self, settings: Settings, service_id: str, write: Callable[[Path], dict[str, Any]]):
+        robot, prefix, state_dir = settings.robot, settings.key_prefix, settings.state_dir
+        min_interval_s = settings.ingest.min_save_interval_s
         self.robot, self.prefix, self.state_dir, self.write = robot, prefix, state_dir, write
         self.service_id = service_id
         self._queries: queue.Queue[zenoh.Query] = queue.Queue(maxsize=1)

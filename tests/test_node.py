@@ -29,13 +29,13 @@ def test_status_objects_and_loops_answer_while_the_pipeline_is_busy():
             node.submit(encode_frame(make_frame(t=1.0 + 0.1 * i, seq=i), "rgb8", "u16le"))
         assert node.wait_done(3, timeout=30.0)
         assert node.status()["frames_processed"] == 3 and node.status()["keyframes"] >= 1
-        assert len(json.loads(node.reply_bytes("trajectory"))["poses"]) == 3  # computed once, then cached
+        assert len(json.loads(node.replies.body("trajectory"))["poses"]) == 3  # computed once, then cached
         with node.hold_core():  # the worker holding the core for a long frame
             replies = {}
 
             def query() -> None:
                 replies.update(status=node.status(), objects=node.objects_reply(), loops=node.loops_reply())
-                replies["trajectory"] = json.loads(node.reply_bytes("trajectory"))
+                replies["trajectory"] = json.loads(node.replies.body("trajectory"))
 
             thread = threading.Thread(target=query)
             thread.start()
