@@ -10,10 +10,11 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
+from rich.text import Text
 
 from bench import commands as bench_commands
 from rl import commands as lc_cli
-from service.cli_common import UserError, console
+from service.cli_common import UserError, console, positive_finite
 from service.cli_common import camera_overrides as _camera_overrides
 from service.config import ConfigError, Settings, dump_defaults, load_settings
 from sources import DatasetError
@@ -109,7 +110,9 @@ def serve(
     from service.run import serve as serve_forever
 
     settings = _settings(config, robot, connect, listen, mode, state_dir, zenoh_config)
-    serve_forever(_with_lc(settings, lc_source, lc_policy))
+    code = serve_forever(_with_lc(settings, lc_source, lc_policy))
+    if code:  # some outputs could not be written on shutdown (logged one line each)
+        sys.exit(code)
 
 
 StrideOpt = Annotated[int | None, typer.Option("--stride", help="every N-th frame only (the dataset option stride=N)")]
@@ -151,8 +154,7 @@ def replay(
 
     if rate is not None and max_rate:
         raise UserError("--rate and --max-rate are exclusive")
-    if rate is not None and rate <= 0:
-        raise UserError(f"--rate must be positive (got {rate:g})")
+    positive_finite("--rate", rate)
     settings = _settings(config, robot, connect, None, mode, zenoh_config=zenoh_config)
     data = open_dataset(
         _view_spec(dataset, stride, drop, drop_seed),
@@ -161,7 +163,7 @@ def replay(
     )
     session = open_session(settings.zenoh, "client")
     try:
-        pub = frame_publisher(session, f"{settings.key_prefix}/rgbd")
+        pub = frame_publisher(session, f"{settings.key_prefix}/rgbd", settings.zenoh.query_timeout_s, required=True)
         result = Replayer(data, pub.put, rate_hz=rate, max_rate=max_rate, max_frames=max_frames).run()
         pub.undeclare()
     finally:
@@ -182,13 +184,17 @@ def save(
     """Ask a running service to write its outputs (trajectory, objects, loops, report, map) into its state dir."""
     from service.client import query
 
+    positive_finite("--timeout", timeout)
     reply = query(_settings(config, robot, connect, None, mode, zenoh_config=zenoh_config), "save", timeout)
     if as_json:
         print(json.dumps(reply, indent=1))
     else:
-        console.print(
-            f"{reply['robot']}: {reply['keyframes']} keyframes of {reply['frames_processed']} frames "
-            f"written to {reply['dir']} in {reply['seconds']:.1f} s: {', '.join(reply['files'])}"
+        files = ", ".join(map(str, reply.get("files", [])))
+        console.print(  # plain text: the reply's strings are data, not rich markup
+            Text(
+                f"{reply.get('robot')}: {reply.get('keyframes')} keyframes of {reply.get('frames_processed')} frames "
+                f"written to {reply.get('dir')} in {reply.get('seconds')} s: {files}"
+            )
         )
 
 
@@ -231,16 +237,23 @@ def run(
     drop_seed: DropSeedOpt = None,
 ) -> None:
     """Run the whole pipeline on one dataset over an embedded zenoh session; write the outputs."""
+    from service.outputs import EXIT_OUTPUTS_FAILED, OutputsError, check_output_dir
     from service.run import run_dataset
     from service.summary import print_summary
 
-    summary = run_dataset(
-        _view_spec(dataset, stride, drop, drop_seed),
-        out,
-        _with_lc(_settings(config), lc_source, lc_policy),
-        max_frames,
-        _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy),
-    )
+    check_output_dir(out, "--out")
+    try:
+        summary = run_dataset(
+            _view_spec(dataset, stride, drop, drop_seed),
+            out,
+            _with_lc(_settings(config), lc_source, lc_policy),
+            max_frames,
+            _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy),
+        )
+    except OutputsError as exc:  # the run is done; what was written is summarised, the failures were logged
+        print_summary(console, exc.summary, out)
+        print(f"objslam: error: {exc}", file=sys.stderr)
+        sys.exit(EXIT_OUTPUTS_FAILED)
     print_summary(console, summary, out)
 
 
@@ -295,7 +308,8 @@ def single_threaded_blas() -> None:
 
 
 def main() -> None:
-    """Console entry point: domain errors become one line on stderr and exit code 1."""
+    """Console entry point: domain errors become one line on stderr and exit code 1 (``serve`` and ``run``: 3 when
+    some output files could not be written, ``service.outputs.EXIT_OUTPUTS_FAILED``)."""
     logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     ours = ("service", "slam", "loops", "perception", "graph", "rl", "sources", "evaluation", "bench")
     for package in ours:  # progress messages of ours; other libraries' warnings only

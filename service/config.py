@@ -5,12 +5,24 @@ Nested fields use ``__`` in environment variables, e.g. ``OBJSLAM_ZENOH__MODE=cl
 
 from __future__ import annotations
 
+import os
+import re
+import types
+import typing
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, Field, ValidationError
-from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, YamlConfigSettingsSource
+from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic_core import PydanticCustomError
+from pydantic_settings import (
+    BaseSettings,
+    InitSettingsSource,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    SettingsError,
+)
 
 from graph.settings import GraphSettings
 from loops.settings import LoopSettings
@@ -20,6 +32,9 @@ from perception.odometry import OdometrySettings
 from service.protocol import Limits
 from slam.settings import ObjectSettings
 from sources.tum import CameraDefaults
+
+ENV_PREFIX = "OBJSLAM_"
+KEY_CHUNKS = re.compile(r"^[^/*$#?\s]+(/[^/*$#?\s]+)*$")
 
 
 class ConfigError(Exception):
@@ -36,12 +51,23 @@ class ZenohSettings(BaseModel):
     )
     multicast_scouting: bool = Field(False, description="multicast discovery (off: loopback-only deployments)")
     key_prefix: str = "objslam"
-    query_timeout_s: float = 5.0
+    query_timeout_s: float = Field(5.0, gt=0, allow_inf_nan=False)
     config_file: Path | None = Field(
         None,
         description="a native zenoh configuration file (JSON5): TLS / mTLS, user-password authentication, "
         "access control. It decides the transport; mode, listen and connect given here (or as flags) override it",
     )
+
+    @field_validator("key_prefix")
+    @classmethod
+    def _valid_key_prefix(cls, value: str) -> str:
+        """Checked here, not when the session declares its keys: zenoh's own error there is a traceback."""
+        if not KEY_CHUNKS.match(value):
+            raise ValueError(
+                f"{value!r} is not a zenoh key: chunks separated by '/', none empty, without '*', '$', '#', '?', "
+                "spaces or a leading or trailing '/'"
+            )
+        return value
 
 
 class IngestSettings(Limits):
@@ -75,6 +101,17 @@ class Settings(BaseSettings):
     persistence: PersistenceSettings = Field(default_factory=PersistenceSettings)
     camera: CameraDefaults = Field(default_factory=CameraDefaults)
 
+    @model_validator(mode="before")
+    @classmethod
+    def _no_unknown_keys(cls, data: Any) -> Any:
+        """Every key of every section must be a field: a misspelt key (``queue_sise``) would otherwise leave the
+        default in place silently, since not every section's model forbids extra keys itself."""
+        if isinstance(data, Mapping):
+            unknown = unknown_keys(cls, data)
+            if unknown:
+                raise PydanticCustomError("unknown_key", "unknown key", {"where": unknown[0]})
+        return data
+
     def map_sections(self) -> dict[str, Any]:
         """The sections that shape the map (not endpoints, queue or state dir), to compare on resume."""
         sections = {"keyframes", "odometry", "loops", "detector", "objects", "graph", "camera"}
@@ -86,9 +123,94 @@ class Settings(BaseSettings):
         return f"{self.zenoh.key_prefix}/{self.robot}"
 
 
-def _settings_class(config_file: Path | None) -> type[Settings]:
-    if config_file is None:
+def section_model(annotation: Any) -> type[BaseModel] | None:
+    """The pydantic model a field holds (also through ``X | None``), or None for a plain value."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return annotation
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        models = [m for m in map(section_model, typing.get_args(annotation)) if m is not None]
+        return models[0] if len(models) == 1 else None
+    return None
+
+
+def _field_named(model: type[BaseModel], key: str) -> Any:
+    for name, field in model.model_fields.items():
+        if key in (name, field.alias):
+            return field
+    return None
+
+
+def unknown_keys(model: type[BaseModel], data: Mapping[str, Any], where: str = "") -> list[str]:
+    """Dotted paths of the keys of ``data`` (nested mappings included) that are not fields of ``model``."""
+    found = []
+    for key, value in data.items():
+        field = _field_named(model, str(key))
+        if field is None:
+            found.append(f"{where}{key}")
+            continue
+        section = section_model(field.annotation)
+        if section is not None and isinstance(value, Mapping):
+            found += unknown_keys(section, value, f"{where}{key}.")
+    return found
+
+
+def _known_env_path(model: type[BaseModel], path: list[str]) -> bool:
+    """Whether ``OBJSLAM_A__B__C`` (path ``[a, b, c]``) names a field: a section, one of its fields, or a key
+    inside a mapping field."""
+    field = _field_named(model, path[0])
+    if field is None:
+        return False
+    if len(path) == 1:
+        return True
+    section = section_model(field.annotation)
+    if section is not None:
+        return _known_env_path(section, path[1:])
+    return _is_mapping(field.annotation)
+
+
+def _is_mapping(annotation: Any) -> bool:
+    """A ``dict[...]`` field (also through ``X | None``): its keys are data, not configuration keys."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return any(_is_mapping(arg) for arg in typing.get_args(annotation))
+    return typing.get_origin(annotation) is dict
+
+
+def check_environment(environ: Mapping[str, str]) -> None:
+    """ConfigError naming the first ``OBJSLAM_*`` variable that is no configuration key: pydantic-settings reads
+    only the variables it knows, so a misspelt one (``OBJSLAM_ROBOTT``) would be ignored silently."""
+    for name in sorted(environ):
+        if not name.upper().startswith(ENV_PREFIX):
+            continue
+        path = name[len(ENV_PREFIX) :].lower().split("__")
+        if not _known_env_path(Settings, path):
+            raise ConfigError(
+                f"unknown environment variable {name}: no configuration key {'.'.join(path)} "
+                "(OBJSLAM_<SECTION>__<FIELD>; `objslam config --dump` lists them)"
+            )
+
+
+def read_config_file(config_file: Path) -> dict[str, Any]:
+    """The YAML file's sections; ConfigError unless it is a mapping (an empty file is no sections)."""
+    if not Path(config_file).is_file():
+        raise ConfigError(f"config file not found: {config_file}")
+    try:
+        data = yaml.safe_load(Path(config_file).read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"config file {config_file} is not valid YAML: {exc}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(
+            f"config file {config_file}: the top level must be a mapping of sections (robot, zenoh, ...), "
+            f"not {type(data).__name__} {data!r:.40}"
+        )
+    return data
+
+
+def _settings_class(file_data: dict[str, Any] | None) -> type[Settings]:
+    if file_data is None:
         return Settings
+    sections: dict[str, Any] = file_data
 
     class FileSettings(Settings):
         @classmethod
@@ -100,23 +222,37 @@ def _settings_class(config_file: Path | None) -> type[Settings]:
             dotenv_settings: PydanticBaseSettingsSource,
             file_secret_settings: PydanticBaseSettingsSource,
         ) -> tuple[PydanticBaseSettingsSource, ...]:
-            return (init_settings, env_settings, YamlConfigSettingsSource(settings_cls, yaml_file=config_file))
+            return (init_settings, env_settings, InitSettingsSource(settings_cls, init_kwargs=sections))
 
     return FileSettings
 
 
 def load_settings(config_file: Path | None = None, overrides: dict[str, Any] | None = None) -> Settings:
-    """Settings from defaults, an optional YAML file, the environment and ``overrides`` (highest)."""
-    if config_file is not None and not Path(config_file).is_file():
-        raise ConfigError(f"config file not found: {config_file}")
+    """Settings from defaults, an optional YAML file, the environment and ``overrides`` (highest).
+
+    Every mistake is a ConfigError of one line: an unknown key (file, environment or flag), a file that is not
+    a mapping, an environment value that does not parse, an invalid value."""
+    file_data = read_config_file(config_file) if config_file is not None else None
+    check_environment(os.environ)
     try:
-        return _settings_class(config_file)(**(overrides or {}))
+        return _settings_class(file_data)(**(overrides or {}))
     except ValidationError as exc:
-        first = exc.errors()[0]
-        where = ".".join(str(p) for p in first["loc"])
-        raise ConfigError(f"invalid configuration at {where}: {first['msg']}") from None
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"config file {config_file} is not valid YAML: {exc}") from None
+        raise ConfigError(_one_line(exc)) from None
+    except SettingsError as exc:
+        raise ConfigError(
+            f"invalid environment: {exc} (a whole section's variable, such as OBJSLAM_ZENOH, holds JSON; "
+            "or set one field: OBJSLAM_ZENOH__MODE=client)"
+        ) from None
+
+
+def _one_line(exc: ValidationError) -> str:
+    """``invalid configuration at <dotted key>: <what is wrong>`` for the first error."""
+    first = exc.errors()[0]
+    if first["type"] in ("unknown_key", "extra_forbidden"):
+        where = first.get("ctx", {}).get("where") or ".".join(str(p) for p in first["loc"])
+        return f"invalid configuration at {where}: unknown key"
+    where = ".".join(str(p) for p in first["loc"])
+    return f"invalid configuration at {where}: {first['msg'].removeprefix('Value error, ')}"
 
 
 def dump_defaults() -> str:

@@ -68,6 +68,8 @@ def plot_map(
         plot_objects(ax, objects or [], axes, np.zeros(3))
         ax.plot(*(pts @ axes.T).T, color="tab:blue", lw=1.5, label="optimised")
         ax.scatter(*(pts[:1] @ axes.T).T, color="green", zorder=5, label="start")
+    else:  # an empty map (no frame processed, or none tied to the map) still gets its picture
+        ax.text(0.5, 0.5, "no pose in the map", ha="center", va="center", transform=ax.transAxes)
     title = "objslam map (top-down)"
     if error is not None:
         title += f"  ATE RMSE {error.ate_rmse_m * 100:.2f} cm"
@@ -76,7 +78,8 @@ def plot_map(
     ax.set_xlabel("m")
     ax.set_ylabel("m")
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(loc="best", fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)

@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -15,16 +17,46 @@ from evaluation.trajectory_metrics import error_dict, evaluate
 from graph.geometry import pose_to_tum
 from graph.trajectory import Trajectory
 
+log = logging.getLogger(__name__)
+
+EXIT_OUTPUTS_FAILED = 3  # exit code of `serve` (on shutdown) and `run` when some output files could not be written
+
+
+class OutputsError(OSError):
+    """Some output files could not be written (each failure logged); the others were. ``summary`` is what
+    ``write_outputs`` returns otherwise, ``failed`` maps each missing file to its reason."""
+
+    def __init__(self, out: Path, failed: dict[str, str], summary: dict[str, Any]):
+        names = ", ".join(f"{name} ({reason})" for name, reason in failed.items())
+        super().__init__(f"could not write {len(failed)} output file(s) into {out}: {names}")
+        self.failed, self.summary = failed, summary
+
+
+def check_output_dir(out: Path, flag: str = "--out") -> None:
+    """Before any work: ``out`` must be a writable directory or one that can be created there, so that a long run
+    does not end in a failure to write its results."""
+    path = Path(out).absolute()
+    existing = next(p for p in (path, *path.parents) if p.exists())
+    if not existing.is_dir():
+        where = "is a file" if existing == path else f"cannot be created: {existing} is a file"
+        raise NotADirectoryError(f"{flag} {out} {where}, not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise PermissionError(f"{flag} {out}: {existing} is not writable")
+
 
 def atomic_write(path: Path, data: str | bytes) -> None:
     """Write via a temporary file and rename, so readers never see a partial file."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.")
-    with os.fdopen(fd, "wb") as fh:
-        fh.write(data.encode() if isinstance(data, str) else data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data.encode() if isinstance(data, str) else data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:  # a full disk or a directory in the way: no temporary file left behind
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 def tum_text(traj: Trajectory) -> str:
@@ -48,35 +80,63 @@ def write_outputs(
     """Write every output file into ``out``; returns the summary with the metrics added.
 
     With map points (``cloud``) also ``cloud.npy`` and, when the trajectory crosses itself, the map's grid
-    world ``grid.json`` / ``grid.png`` for ``train-lc --from-map``.
+    world ``grid.json`` / ``grid.png`` for ``train-lc --from-map``. Each file is written on its own: one that
+    fails (read-only directory, full disk) is logged and the others are still written; then OutputsError names
+    the failures. An empty map (no frame processed) gives empty trajectories, objects and loops.
     """
-    out.mkdir(parents=True, exist_ok=True)
-    if cloud is not None:
-        buf = io.BytesIO()
-        np.save(buf, np.asarray(cloud, np.float32))
-        atomic_write(out / "cloud.npy", buf.getvalue())
-        from rl.map_files import try_write_grid
+    failed: dict[str, str] = {}
 
-        summary = {
-            **summary,
-            "grid_world": try_write_grid(out, summary.get("dataset", "map"), trajectory, cloud, objects or []),
-        }
-    atomic_write(out / "trajectory.tum", tum_text(trajectory))
-    atomic_write(out / "odometry.tum", tum_text(odometry))
-    atomic_write(out / "objects.json", json.dumps(objects or [], indent=1))
-    atomic_write(out / "loops.json", json.dumps(loops or [], indent=1))
+    def attempt(name: str, write: Callable[[], Any]) -> Any:
+        try:
+            return write()
+        except Exception as exc:  # any failure of one file must leave the others to be written
+            reason = " ".join(str(exc).split()) or type(exc).__name__
+            log.error("could not write %s: %s", out / name, reason)
+            log.debug("writing %s failed", name, exc_info=True)
+            failed[name] = reason
+            return None
+
+    if cloud is not None:
+        attempt("cloud.npy", lambda: atomic_write(out / "cloud.npy", _npy(cloud)))
+        grid = attempt("grid.json", lambda: _write_grid(out, summary, trajectory, cloud, objects or []))
+        summary = {**summary, "grid_world": bool(grid)}
+    attempt("trajectory.tum", lambda: atomic_write(out / "trajectory.tum", tum_text(trajectory)))
+    attempt("odometry.tum", lambda: atomic_write(out / "odometry.tum", tum_text(odometry)))
+    attempt("objects.json", lambda: atomic_write(out / "objects.json", json.dumps(objects or [], indent=1)))
+    attempt("loops.json", lambda: atomic_write(out / "loops.json", json.dumps(loops or [], indent=1)))
     metrics = {name: evaluate(t, gt) for name, t in (("trajectory", trajectory), ("odometry", odometry))}
     summary = {**summary, "ate": {k: error_dict(v) for k, v in metrics.items() if v is not None}}
-    atomic_write(out / "report.md", report_markdown(summary))
+    attempt("report.md", lambda: atomic_write(out / "report.md", report_markdown(summary)))
     from service.mapplot import plot_map  # matplotlib is slow to import; only needed here
 
-    plot_map(out / "map.png", trajectory, odometry, gt, metrics["trajectory"], objects, loops)
+    error = metrics["trajectory"]
+    attempt("map.png", lambda: plot_map(out / "map.png", trajectory, odometry, gt, error, objects, loops))
+    if failed:
+        raise OutputsError(out, failed, summary)
     return summary
+
+
+def _npy(cloud: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.asarray(cloud, np.float32))
+    return buf.getvalue()
+
+
+def _write_grid(out: Path, summary: dict[str, Any], trajectory: Trajectory, cloud: np.ndarray, objects: list) -> bool:
+    """The map's grid world when it has one; none from a map without poses or points (nothing to build it on)."""
+    if len(trajectory) < 2 or len(cloud) == 0:
+        return False
+    from rl.map_files import try_write_grid
+
+    return try_write_grid(out, summary.get("dataset", "map"), trajectory, cloud, objects)
 
 
 def report_markdown(summary: dict[str, Any]) -> str:
     """``report.md``: the run summary and, with ground truth, ATE / RPE tables."""
-    lines = [f"# objslam report: {summary.get('dataset', '')}", "", "| quantity | value |", "|---|---|"]
+    lines = [f"# objslam report: {summary.get('dataset', '')}", ""]
+    if not summary.get("frames_processed"):
+        lines += ["No frame was processed: the trajectories, objects and loops are empty.", ""]
+    lines += ["| quantity | value |", "|---|---|"]
     for key, value in summary.items():
         if key in ("ate", "dataset", "latency"):
             continue

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -39,8 +40,8 @@ class Replayer:
         before_publish: Callable[[], None] | None = None,
         progress: bool = True,
     ):
-        if rate_hz is not None and rate_hz <= 0:
-            raise ValueError("--rate must be positive")
+        if rate_hz is not None and not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise ValueError(f"--rate must be a positive number of frames per second (got {rate_hz:g})")
         self.dataset = dataset
         self.publish = publish
         self.rate_hz = rate_hz
@@ -87,14 +88,32 @@ def _matching(pub: zenoh.Publisher) -> bool:
     return bool(getattr(status, "matching", status))
 
 
-def frame_publisher(session: zenoh.Session, key: str, wait_for_subscriber_s: float = 5.0) -> zenoh.Publisher:
-    """A reliable, blocking publisher on ``key``; waits briefly for a subscriber so no frame is lost at start."""
+def wait_for_subscriber(pub: zenoh.Publisher, timeout_s: float) -> bool:
+    """Whether a subscriber matches ``pub`` within ``timeout_s`` (zenoh propagates interest asynchronously)."""
+    deadline = time.monotonic() + timeout_s
+    while not _matching(pub) and time.monotonic() < deadline:
+        time.sleep(0.02)
+    return _matching(pub)
+
+
+def frame_publisher(
+    session: zenoh.Session, key: str, wait_for_subscriber_s: float = 5.0, required: bool = False
+) -> zenoh.Publisher:
+    """A reliable, blocking publisher on ``key``; waits briefly for a subscriber so no frame is lost at start.
+
+    ``required``: without a subscriber by then, ConnectionError instead of a warning. A replay into nothing
+    would otherwise publish every frame into the void and exit 0 as if the service had them.
+    """
     pub = session.declare_publisher(
         key, congestion_control=zenoh.CongestionControl.BLOCK, reliability=zenoh.Reliability.RELIABLE
     )
-    deadline = time.monotonic() + wait_for_subscriber_s
-    while not _matching(pub) and time.monotonic() < deadline:
-        time.sleep(0.02)
-    if not _matching(pub):
-        log.warning("no subscriber on %s yet; publishing anyway", key)
+    if wait_for_subscriber(pub, wait_for_subscriber_s):
+        return pub
+    if required:
+        pub.undeclare()
+        raise ConnectionError(
+            f"no subscriber on {key} within {wait_for_subscriber_s:g} s: is `objslam serve` running for this robot "
+            "and reachable? (zenoh.query_timeout_s sets the wait)"
+        )
+    log.warning("no subscriber on %s yet; publishing anyway", key)
     return pub

@@ -11,7 +11,7 @@ from typing import Any
 
 from service.config import Settings
 from service.node import ServiceNode
-from service.outputs import run_summary, write_outputs
+from service.outputs import EXIT_OUTPUTS_FAILED, OutputsError, check_output_dir, run_summary, write_outputs
 from service.replay import Replayer, frame_publisher
 from service.zenoh_session import open_session
 from sources import Dataset, open_dataset
@@ -34,6 +34,7 @@ def run_dataset(
     replay instead keeps at most ``window`` frames published and not yet completed (processed, rejected or
     dropped), below the queue's capacity, so no frame is dropped.
     """
+    check_output_dir(out, "out")  # before any work: a run must not end in a failure to write its results
     dataset = open_dataset(spec, camera_overrides, settings.camera.model_dump()) if isinstance(spec, str) else spec
     settings = settings.model_copy(update={"state_dir": None})  # a run starts a new map and keeps no snapshots
     session = open_session(settings.zenoh, "server", embedded=True)
@@ -72,11 +73,12 @@ def run_dataset(
         session.close()
 
 
-def serve(settings: Settings, stop: threading.Event | None = None) -> None:
-    """Run the service until SIGINT / SIGTERM (or ``stop``).
+def serve(settings: Settings, stop: threading.Event | None = None) -> int:
+    """Run the service until SIGINT / SIGTERM (or ``stop``); returns the exit code.
 
     With a state dir: resume from its newest good snapshot, write snapshots while running, and on
-    shutdown a last snapshot and the outputs (SPEC section 4).
+    shutdown a last snapshot and the outputs (SPEC section 4). Exit code 0, or ``EXIT_OUTPUTS_FAILED`` when
+    some output files could not be written (each named in a log line; the others are written).
     """
     stop = stop or threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -93,8 +95,23 @@ def serve(settings: Settings, stop: threading.Event | None = None) -> None:
         while not stop.wait(0.5):
             pass
     finally:
-        node.stop()
-        if settings.state_dir is not None:
-            node.write_outputs(Path(settings.state_dir))
+        code = _shut_down(node, settings.state_dir)
         session.close()
         log.info("objslam serve: stopped")
+    return code
+
+
+def _shut_down(node: ServiceNode, state_dir: Path | None) -> int:
+    """Stop the node (last snapshot) and write the outputs into the state dir: as many files as can be written."""
+    try:
+        node.stop()
+    except Exception as exc:  # the outputs are still worth writing from the map in memory
+        log.error("stopping the service failed: %s", " ".join(str(exc).split()))
+    if state_dir is None:
+        return 0
+    try:
+        node.write_outputs(Path(state_dir))
+    except OutputsError as exc:
+        log.error("%s", exc)
+        return EXIT_OUTPUTS_FAILED
+    return 0

@@ -8,11 +8,13 @@ from typing import Any
 
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
 
 def print_summary(console: Console, summary: dict[str, Any], out: Path) -> None:
-    """Frames, poses, objects by class, loop closures, ATE against ground truth, throughput."""
-    table = Table(title=f"objslam run: {summary.get('dataset')}", show_header=False)
+    """Frames, poses, objects by class, loop closures, ATE against ground truth, throughput (an empty map
+    included: no frame processed prints zeros)."""
+    table = Table(title=Text(f"objslam run: {summary.get('dataset')}"), show_header=False)
     rows = [
         ("frames", summary["frames"]),
         ("frames processed", summary["frames_processed"]),
@@ -36,6 +38,6 @@ def print_summary(console: Console, summary: dict[str, Any], out: Path) -> None:
     if lat.get("n"):
         rows.append(("ingest-to-graph latency", f"p50 {lat['p50_ms']:.1f} ms, p95 {lat['p95_ms']:.1f} ms"))
     rows.append(("outputs", str(out)))
-    for name, value in rows:
-        table.add_row(name, str(value))
+    for name, value in rows:  # plain text: a dataset path or class name with [...] is no rich markup
+        table.add_row(Text(name), Text(str(value)))
     console.print(table)
