@@ -79,7 +79,9 @@ def camera_up(poses: np.ndarray) -> np.ndarray:
 def ground_frame(
     poses: np.ndarray, points: np.ndarray, cell_m: float, up: np.ndarray | None = None, margin_cells: int = 2
 ) -> GroundFrame:
-    """The grid frame spanning the camera positions (SPEC 6.9 ground plane)."""
+    """The grid frame spanning the camera positions (SPEC 6.9 ground plane); ValueError without any."""
+    if len(poses) == 0:
+        raise ValueError("no camera pose: an empty map has no ground frame")
     up = camera_up(poses) if up is None else np.asarray(up, float) / np.linalg.norm(up)
     seed = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     row_axis = np.cross(up, seed)
