@@ -32,7 +32,7 @@ from service.labels import LabelVocabulary
 from service.map_summary import MapSummary, summarize
 from service.outputs import run_summary, write_outputs
 from service.persistence import Persistence
-from service.protocol import VERSION, FrameRejected
+from service.protocol import VERSION, FrameRejected, Reason
 from service.replies import Replies
 from service.save_requests import SaveRequests
 from service.scheduler import ThreadedRunner
@@ -180,6 +180,10 @@ class ServiceNode:
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
         self.stats.count_received()
+        if len(sample.payload) > self.limits.max_payload_bytes:  # refused before it is copied
+            self.stats.count_rejected(Reason.TOO_LARGE.value)
+            self._completed_one()
+            return
         self.submit(sample.payload.to_bytes())
 
     def submit(self, payload: bytes) -> None:
@@ -342,19 +346,13 @@ class ServiceNode:
 
     def _replies(self, limits: IngestSettings) -> Replies:
         """The queryables' replies, each recomputed once per change of what it shows (``service.replies``)."""
-        versions: dict[str, Callable[[], Hashable]] = {
-            "status": lambda: (self._summary_version, self.stats.received, self.completed, self.queue.depth),
-            "trajectory": lambda: self._summary_version,
-            "objects": lambda: self.summary.objects_key,
-            "loops": lambda: self.summary.loops_key,
+        entries: dict[str, tuple[Callable[[], dict[str, Any]], Callable[[], Hashable]]] = {
+            "status": (self.status, lambda: (self._summary_version, self.stats.received, self.completed)),
+            "trajectory": (self.trajectory_reply, lambda: self._summary_version),
+            "objects": (self.objects_reply, lambda: self.summary.objects_key),
+            "loops": (self.loops_reply, lambda: self.summary.loops_key),
         }
-        handlers = {
-            "status": self.status,
-            "trajectory": self.trajectory_reply,
-            "objects": self.objects_reply,
-            "loops": self.loops_reply,
-        }
-        return Replies(self.prefix, self.service_id, handlers, versions, limits.max_queries_per_s)
+        return Replies(self.prefix, self.service_id, entries, limits.max_queries_per_s)
 
     def status(self) -> dict[str, Any]:
         """The ``status`` reply (schema in docs/protocol.md), without waiting for the frame being processed."""

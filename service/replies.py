@@ -63,15 +63,13 @@ class Replies:
         self,
         prefix: str,
         service_id: str,
-        handlers: dict[str, Callable[[], dict[str, Any]]],
-        versions: dict[str, Callable[[], Hashable]],
+        entries: dict[str, tuple[Callable[[], dict[str, Any]], Callable[[], Hashable]]],
         max_per_s: float,
     ):
+        """``entries``: per queryable, the reply's contents and the version of what it shows."""
         self.prefix, self.service_id = prefix, service_id
         self.budget = TokenBucket(max_per_s, max_per_s)
-        self.cached = {
-            name: CachedReply(self._serializer(handler), versions[name]) for name, handler in handlers.items()
-        }
+        self.cached = {name: CachedReply(self._serializer(h), v) for name, (h, v) in entries.items()}
 
     def body(self, name: str) -> bytes:
         """The reply of queryable ``name`` as sent."""

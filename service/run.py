@@ -83,7 +83,7 @@ def serve(settings: Settings, stop: threading.Event | None = None) -> int:
     stop = stop or threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    session = open_session(settings.zenoh, "server")
+    session = open_session(settings.zenoh, "server", max_message_bytes=settings.ingest.max_payload_bytes)
     try:
         node = ServiceNode(settings, session)
     except BaseException:

@@ -60,10 +60,24 @@ def _one_line(exc: Exception) -> str:
     return re.sub(r"\s+at\s+\S+\.rs:\d+\.?", "", " ".join(str(exc).split()))
 
 
-def open_session(settings: ZenohSettings, role: str, embedded: bool = False) -> zenoh.Session:
-    """Open a session; raises ConnectionError with one clear line when zenoh refuses."""
+MESSAGE_OVERHEAD_BYTES = 64 * 1024
+"""Room above the largest frame for zenoh's own framing when bounding the messages a session takes."""
+
+
+def open_session(
+    settings: ZenohSettings, role: str, embedded: bool = False, max_message_bytes: int | None = None
+) -> zenoh.Session:
+    """Open a session; raises ConnectionError with one clear line when zenoh refuses.
+
+    ``max_message_bytes``: larger messages are dropped by zenoh's transport before they are reassembled into
+    memory (``transport/link/rx/max_message_size``; the link stays up): 60 MB of junk every 0.1 s otherwise
+    cost the service 200 MB of RSS before its own size check could refuse them."""
+    conf = zenoh_config(settings, role, embedded)
+    if max_message_bytes is not None:
+        limit = max_message_bytes + MESSAGE_OVERHEAD_BYTES
+        conf.insert_json5("transport/link/rx/max_message_size", json.dumps(limit))
     try:
-        return zenoh.open(zenoh_config(settings, role, embedded))
+        return zenoh.open(conf)
     except zenoh.ZError as exc:
         reason = _one_line(exc)
         endpoints = settings.connect or settings.listen
