@@ -24,7 +24,7 @@ import numpy as np
 
 from graph.geometry import is_rigid, pose_from_tum, pose_to_tum
 from perception.frame import CameraModel, Detection, Frame, FrameRejected, Intrinsics, Reason
-from service.image_probe import ProbeError, probe
+from perception.image_probe import ProbeError, probe
 from service.limits import DEFAULT_LIMITS, Limits
 
 MAGIC = b"OSLM"
@@ -147,7 +147,7 @@ def decode_images(message: Inspected) -> Frame:
 
 def inspect_message(payload: bytes, limits: Limits | None = None) -> Inspected:
     """Every check that needs no pixel decoded: preamble, header fields, sizes, and the dimensions the encoded
-    images declare in their own headers (``service.image_probe``), so a decompression bomb is refused unread.
+    images declare in their own headers (``perception.image_probe``), so a decompression bomb is refused unread.
     Cheap enough for zenoh's callback thread; raises FrameRejected with the first problem found."""
     limits = limits or DEFAULT_LIMITS
     if len(payload) > limits.max_payload_bytes:
