@@ -105,8 +105,16 @@ def bench_throughput(
     frames: Annotated[int, typer.Option("--frames")] = 300,
     dataset: Annotated[str, typer.Option("--dataset")] = "synthetic:room?seed=0",
     write: Annotated[Path | None, typer.Option("--write", help="benchmarks markdown file")] = None,
+    ros2: Annotated[
+        bool, typer.Option("--ros2", help="the ROS 2 ingest path (rmw_zenoh keys) against protocol v1")
+    ] = False,
 ) -> None:
     """Replay-to-graph throughput at max rate over zenoh (frames pre-encoded, service in a subprocess)."""
+    if ros2:
+        from bench.ros2_throughput import run_ros2_throughput
+
+        run_ros2_throughput(console, dataset, frames, write)
+        return
     from bench.throughput import run_throughput
 
     run_throughput(console, dataset, frames, write)
@@ -143,6 +151,32 @@ def bench_overload(
     if seconds <= 0 or factor <= 0 or (frames is not None and frames <= 0):
         raise UserError("--seconds, --factor and --frames must be positive")
     run_overload(console, dataset, seconds, frames, factor, write)
+
+
+@bench_app.command("hostile")
+def bench_hostile(
+    attacks: Annotated[
+        str | None,
+        typer.Option(
+            "--attacks",
+            help="comma separated subset (default all, in order): quiet, jpeg_bomb, "
+            "png_bomb, garbage_flood, junk_60mb, label_flood, query_flood, save_flood, time_poison",
+        ),
+    ] = None,
+    seconds: Annotated[
+        float, typer.Option("--seconds", help="duration of quiet, the bombs and the garbage flood (junk: a third)")
+    ] = 30.0,
+    write: Annotated[bool, typer.Option("--write/--no-write", help="record the table in docs/benchmarks.md")] = True,
+) -> None:
+    """Crafted frames, floods and poisoned streams against serve (issue 26): memory, frames lost, recovery."""
+    from bench.hostile import ATTACKS, run_hostile
+
+    chosen = [a.strip() for a in attacks.split(",") if a.strip()] if attacks else list(ATTACKS)
+    if unknown := sorted(set(chosen) - set(ATTACKS)):
+        raise UserError(f"--attacks: unknown {', '.join(unknown)} (known: {', '.join(ATTACKS)})")
+    if seconds < 3:
+        raise UserError("--seconds must be at least 3 (a bomb every 3 s)")
+    run_hostile(console, chosen, seconds, write)
 
 
 DatasetsOpt = Annotated[list[str] | None, typer.Option("--dataset", help="dataset spec (repeatable)")]
