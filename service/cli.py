@@ -16,6 +16,18 @@ from bench import commands as bench_commands
 from rl import commands as lc_cli
 from service.cli_common import UserError, console, positive_finite
 from service.cli_common import camera_overrides as _camera_overrides
+from service.cli_ros2 import (
+    DepthTopicOpt,
+    DetectionsTopicOpt,
+    DomainOpt,
+    InfoTopicOpt,
+    OdomTopicOpt,
+    RgbTopicOpt,
+    Ros2Opt,
+    is_rosbag,
+    ros2_overrides,
+    ros_topics,
+)
 from service.config import ConfigError, Settings, dump_defaults, load_settings
 from sources import DatasetError
 
@@ -58,8 +70,9 @@ def _settings(
     mode: str | None = None,
     state_dir: Path | None = None,
     zenoh_config: Path | None = None,
+    extra: dict[str, Any] | None = None,
 ) -> Settings:
-    overrides: dict[str, Any] = {}
+    overrides: dict[str, Any] = dict(extra or {})
     zenoh_over: dict[str, Any] = {}
     if robot:
         overrides["robot"] = robot
@@ -105,11 +118,20 @@ def serve(
     lc_source: Annotated[LcSource | None, typer.Option("--lc-source")] = None,
     lc_policy: Annotated[Path | None, typer.Option("--lc-policy")] = None,
     zenoh_config: ZenohConfigOpt = None,
+    ros2: Ros2Opt = False,
+    rgb_topic: RgbTopicOpt = None,
+    depth_topic: DepthTopicOpt = None,
+    camera_info_topic: InfoTopicOpt = None,
+    ros_domain_id: DomainOpt = None,
+    odom_topic: OdomTopicOpt = None,
+    detections_topic: DetectionsTopicOpt = None,
 ) -> None:
-    """Run the long-lived mapping service (until SIGINT / SIGTERM)."""
+    """Run the long-lived mapping service (until SIGINT / SIGTERM); with --ros2 it also takes ROS 2 topics."""
     from service.run import serve as serve_forever
 
-    settings = _settings(config, robot, connect, listen, mode, state_dir, zenoh_config)
+    topics = (rgb_topic, depth_topic, camera_info_topic, ros_domain_id, odom_topic, detections_topic)
+    ros = ros2_overrides(ros2, *topics)
+    settings = _settings(config, robot, connect, listen, mode, state_dir, zenoh_config, {"ros2": ros} if ros else None)
     code = serve_forever(_with_lc(settings, lc_source, lc_policy))
     if code:  # some outputs could not be written on shutdown (logged one line each)
         sys.exit(code)
@@ -146,8 +168,15 @@ def replay(
     drop: DropOpt = None,
     drop_seed: DropSeedOpt = None,
     zenoh_config: ZenohConfigOpt = None,
+    rgb_topic: RgbTopicOpt = None,
+    depth_topic: DepthTopicOpt = None,
+    camera_info_topic: InfoTopicOpt = None,
+    ros_domain_id: DomainOpt = None,
+    odom_topic: OdomTopicOpt = None,
+    detections_topic: DetectionsTopicOpt = None,
 ) -> None:
-    """Publish a dataset's frames to a running service (protocol v1)."""
+    """Publish a dataset's frames to a running service (protocol v1); a rosbag2 recording with the topic flags
+    is published as ROS 2 messages on rmw_zenoh keys (for `serve --ros2`)."""
     from service.replay import Replayer, frame_publisher
     from service.zenoh_session import open_session
     from sources import open_dataset
@@ -156,6 +185,18 @@ def replay(
         raise UserError("--rate and --max-rate are exclusive")
     positive_finite("--rate", rate)
     settings = _settings(config, robot, connect, None, mode, zenoh_config=zenoh_config)
+    bag_topics = ros_topics(rgb_topic, depth_topic, camera_info_topic, odom_topic, detections_topic)
+    if bag_topics is not None and is_rosbag(dataset):
+        from service.ros2_replay import replay_rosbag
+
+        session = open_session(settings.zenoh, "client")
+        try:
+            domain = settings.ros2.domain_id if ros_domain_id is None else ros_domain_id
+            result = replay_rosbag(session, Path(dataset), bag_topics, domain, rate, max_rate, max_frames)
+        finally:
+            session.close()
+        console.print(f"published {result.frames} ROS 2 frames in {result.seconds:.1f} s")
+        return
     data = open_dataset(
         _view_spec(dataset, stride, drop, drop_seed),
         _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy),
@@ -235,16 +276,27 @@ def run(
     stride: StrideOpt = None,
     drop: DropOpt = None,
     drop_seed: DropSeedOpt = None,
+    rgb_topic: RgbTopicOpt = None,
+    depth_topic: DepthTopicOpt = None,
+    camera_info_topic: InfoTopicOpt = None,
+    odom_topic: OdomTopicOpt = None,
+    detections_topic: DetectionsTopicOpt = None,
 ) -> None:
-    """Run the whole pipeline on one dataset over an embedded zenoh session; write the outputs."""
+    """Run the whole pipeline on one dataset (or a rosbag2 recording, with the topic flags) over an embedded zenoh
+    session; write the outputs."""
     from service.outputs import EXIT_OUTPUTS_FAILED, OutputsError, check_output_dir
     from service.run import run_dataset
     from service.summary import print_summary
+    from sources import Dataset, open_dataset
 
     check_output_dir(out, "--out")
+    spec: str | Dataset = _view_spec(dataset, stride, drop, drop_seed)
+    bag_topics = ros_topics(rgb_topic, depth_topic, camera_info_topic, odom_topic, detections_topic)
+    if bag_topics is not None:
+        spec = open_dataset(dataset, ros_topics=bag_topics)
     try:
         summary = run_dataset(
-            _view_spec(dataset, stride, drop, drop_seed),
+            spec,
             out,
             _with_lc(_settings(config), lc_source, lc_policy),
             max_frames,

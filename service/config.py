@@ -30,6 +30,7 @@ from perception.detector import DetectorSettings
 from perception.frontend import KeyframeSettings
 from perception.odometry import OdometrySettings
 from service.protocol import Limits
+from service.ros2_settings import Ros2Settings
 from slam.settings import ObjectSettings
 from sources.tum import CameraDefaults
 
@@ -100,6 +101,7 @@ class Settings(BaseSettings):
     graph: GraphSettings = Field(default_factory=GraphSettings)
     persistence: PersistenceSettings = Field(default_factory=PersistenceSettings)
     camera: CameraDefaults = Field(default_factory=CameraDefaults)
+    ros2: Ros2Settings = Field(default_factory=Ros2Settings)
 
     @model_validator(mode="before")
     @classmethod

@@ -69,6 +69,7 @@ class ServiceNode:
         self.replies = self._replies(self.limits)
         self._saved_completed = 0  # frames completed (processed, rejected, failed, dropped) in the newest snapshot
         self.events = MapEvents()
+        self.status_sections: dict[str, Callable[[], Any]] = {}  # more parts of ``status`` (the ROS 2 bridge's)
         self._started = time.time()
         self._entities: list[Any] = []
         self._decoder = threading.Thread(target=self._decode_loop, name="objslam-decoder", daemon=True)
@@ -370,6 +371,7 @@ class ServiceNode:
             labels=self.labels.counters(),
             refused={"queries_busy": self.replies.budget.refused, "saves_busy": self.saves.busy},
         )
+        snap.update({name: section() for name, section in self.status_sections.items()})  # e.g. ``ros2``
         return snap
 
     def trajectory_reply(self) -> dict[str, Any]:

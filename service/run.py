@@ -90,11 +90,19 @@ def serve(settings: Settings, stop: threading.Event | None = None) -> int:
         session.close()
         raise
     node.start()
+    bridge = None
+    if settings.ros2.enabled:  # ROS 2 topics on rmw_zenoh keys (rosbags imported only then)
+        from service.ros2_bridge import Ros2Bridge
+
+        bridge = Ros2Bridge(node)
+        bridge.start(session)
     log.info("objslam serve: robot %s on %s, listening %s", settings.robot, node.prefix, settings.zenoh.listen)
     try:
         while not stop.wait(0.5):
             pass
     finally:
+        if bridge is not None:
+            bridge.stop()
         code = _shut_down(node, settings.state_dir)
         session.close()
         log.info("objslam serve: stopped")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 from urllib.parse import parse_qsl, urlencode
 
 from sources.base import (
@@ -17,6 +18,9 @@ from sources.base import (
     ground_truth_of,
     truth_per_frame,
 )
+
+if TYPE_CHECKING:
+    from sources.ros2.pairing import RosTopics
 
 __all__ = [
     "Dataset",
@@ -41,22 +45,42 @@ frames, every ``stride``-th and/or with a random ``drop`` fraction left out (see
 
 
 def open_dataset(
-    spec: str, camera_overrides: dict[str, float] | None = None, camera_defaults: dict[str, float] | None = None
+    spec: str,
+    camera_overrides: dict[str, float] | None = None,
+    camera_defaults: dict[str, float] | None = None,
+    ros_topics: RosTopics | None = None,
 ) -> Dataset:
-    """A dataset from ``synthetic:NAME?...`` or a directory path, optionally ``?stride=N&drop=F&drop_seed=S``
-    (``VIEW_OPTIONS``); a directory without camera files uses the ``camera_overrides`` (command-line flags)
-    over the ``camera_defaults`` (the ``camera`` settings)."""
+    """A dataset from ``synthetic:NAME?...``, a directory path or a rosbag2 recording, optionally
+    ``?stride=N&drop=F&drop_seed=S`` (``VIEW_OPTIONS``); a directory without camera files uses the
+    ``camera_overrides`` (command-line flags) over the ``camera_defaults`` (the ``camera`` settings); a rosbag2
+    recording (a directory with ``metadata.yaml``, or one ``.mcap`` / ``.db3`` file) is read on ``ros_topics``."""
     spec, view = split_view_options(spec)
     dataset: Dataset
     if spec.startswith("synthetic:"):
         from sources.synthetic import parse_synthetic_spec
 
         dataset = parse_synthetic_spec(spec)
+    elif _is_rosbag(Path(spec)):
+        from sources.ros2.rosbag import RosbagDataset
+
+        if ros_topics is None:
+            raise DatasetError(
+                f"{spec} is a rosbag2 recording: name its topics with --rgb-topic, --depth-topic and "
+                "--camera-info-topic (and --odom-topic / --detections-topic for odometry and detections)"
+            )
+        dataset = RosbagDataset(Path(spec), ros_topics)
     else:
         from sources.tum import TumDataset
 
         dataset = TumDataset(Path(spec), camera_overrides, camera_defaults)
     return with_view(dataset, **view)
+
+
+def _is_rosbag(path: Path) -> bool:
+    """A rosbag2 directory (with ``metadata.yaml``) or a single ``.mcap`` / ``.db3`` storage file (checked here,
+    not in ``sources.ros2``, so other datasets open without importing rosbags)."""
+    is_dir = path.is_dir() and (path / "metadata.yaml").is_file()
+    return is_dir or (path.is_file() and path.suffix in (".mcap", ".db3"))
 
 
 def split_view_options(spec: str) -> tuple[str, dict[str, float]]:
