@@ -254,3 +254,95 @@ def test_a_rosbag2_recording_maps_with_run_like_its_frames_and_replays_into_serv
     assert result.frames == len(ds)
     status = _wait(node, len(ds))
     assert status["frames_processed"] == len(ds), status
+
+
+def test_serve_with_ros2_flags_maps_a_recording_replayed_by_the_cli(tmp_path, router):
+    """The commands a user types: `objslam serve --ros2 --rgb-topic ...` and `objslam replay BAG --rgb-topic ...`."""
+    import os
+    import subprocess
+    import sys
+
+    from sources.ros2.pairing import RosTopics
+    from sources.ros2.rosbag import write_rosbag
+
+    session, endpoint = router
+    frames = 12
+    topics = RosTopics(TOPICS["rgb"], TOPICS["depth"], TOPICS["info"], ODOM)
+    bag = write_rosbag(open_dataset(f"synthetic:room?seed=5&frames={frames}"), tmp_path / "bag", topics)
+    flags = ["--rgb-topic", TOPICS["rgb"], "--depth-topic", TOPICS["depth"], "--camera-info-topic", TOPICS["info"]]
+    common = ["--mode", "client", "--connect", endpoint, "--robot", "rosbot"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    cmd = [sys.executable, "-m", "service"]
+    serve = subprocess.Popen(
+        [*cmd, "serve", *common, "--lc-source", "off", "--ros2", *flags, "--odom-topic", ODOM],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+    try:
+        status = None
+        for _ in range(300):  # until the service answers
+            status = _status(session, "objslam/rosbot/status")
+            if status is not None:
+                break
+            time.sleep(0.2)
+        assert status is not None and status["ros2"]["topics"]["color"] == TOPICS["rgb"]
+        replay = subprocess.run(
+            [*cmd, "replay", str(bag), *common, *flags, "--odom-topic", ODOM, "--rate", "15"],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert replay.returncode == 0, replay.stderr
+        for _ in range(300):
+            status = _status(session, "objslam/rosbot/status")
+            if status and status["frames_processed"] >= frames:
+                break
+            time.sleep(0.1)
+        assert status is not None and status["frames_processed"] == frames, status
+        assert status["ros2"]["results"]["published"]["path"] >= 1
+    finally:
+        serve.terminate()
+        serve.communicate(timeout=30)
+
+
+def _status(session: zenoh.Session, key: str) -> dict | None:
+    for reply in session.get(key, timeout=1.0):
+        if reply.ok is not None:
+            return json.loads(reply.ok.payload.to_bytes())
+    return None
+
+
+def test_provided_detections_on_their_topic_reach_the_object_map():
+    port = free_port()
+    settings = _settings(port, detections_topic="/detections")
+    server = open_session(settings.zenoh, "server")
+    node = ServiceNode(settings, server)
+    node.start()
+    bridge = Ros2Bridge(node)
+    bridge.start(server)
+    robot_session = open_session(settings.zenoh, "client")
+    robot = Robot(robot_session)
+    try:
+        time.sleep(0.5)
+        ds = open_dataset("synthetic:room?seed=2&frames=12")
+        for i in range(len(ds)):
+            frame = ds.frame(i)
+            dets = messages.encode_detections(frame.timestamp, "c", frame.detections or [])
+            robot.put("/detections", messages.DETECTIONS, dets)
+            robot.frame(frame)
+            time.sleep(0.03)
+        status = _wait(node, len(ds))
+        assert status["frames_processed"] == len(ds), status
+        node.finish()
+        by_class = node.status()["keyframe_detections_by_class"]
+        truth = {d.label for i in range(len(ds)) for d in ds.frame(i).detections or []}
+        assert by_class and set(by_class) <= truth
+    finally:
+        robot.close()
+        robot_session.close()
+        bridge.stop()
+        node.stop()
+        server.close()
