@@ -61,7 +61,7 @@ class Ros2Results:
         ):
             self._publishers[name] = session.declare_publisher(self.key(name))
             self._gids[name] = os.urandom(16)
-            dds = dds_type_name(typename)
+            dds = keys.dds_type_name(typename)
             topic = self.topic(name).replace("/", "%")
             token = (
                 f"@ros2_lv/{domain}/{zid}/0/{entity}/MP/%/%/{NODE_NAME}/{topic}/{dds}/{keys.type_hash(typename)}/{QOS}"
@@ -125,12 +125,6 @@ class Ros2Results:
 
     def status(self) -> dict[str, Any]:
         return {"published": dict(self.published), "keys": {name: self.key(name) for name in self.published}}
-
-
-def dds_type_name(typename: str) -> str:
-    """``sensor_msgs/msg/Image`` -> ``sensor_msgs::msg::dds_::Image_`` (rmw_zenoh's type chunk)."""
-    package, kind, name = typename.split("/")
-    return f"{package}::{kind}::dds_::{name}_"
 
 
 def _segments(records: list[dict[str, Any]], kf_poses: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:

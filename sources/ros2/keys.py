@@ -58,13 +58,19 @@ def ros_key(domain_id: int, topic: str, typename: str, type_hash: str | None) ->
         raise ValueError(
             f"ROS topic {topic!r} must be a non-empty name without empty parts or {''.join(sorted(_WILDCARDS))}"
         )
+    dds = dds_type_name(typename)
+    if type_hash is not None and (not type_hash or "/" in type_hash or _WILDCARDS & set(type_hash)):
+        raise ValueError(f"type hash {type_hash!r} is not a single key chunk")
+    return f"{domain_id}/{name}/{dds}/{ANY_HASH if type_hash is None else type_hash}"
+
+
+def dds_type_name(typename: str) -> str:
+    """rmw_zenoh's type chunk of ``typename``: ``sensor_msgs/msg/Image`` -> ``sensor_msgs::msg::dds_::Image_``."""
     match = _TYPENAME.match(typename)
     if match is None:
         raise ValueError(f"message type {typename!r} is not of the form package/msg/Type")
-    package, kind, name_ = match.groups()
-    if type_hash is not None and (not type_hash or "/" in type_hash or _WILDCARDS & set(type_hash)):
-        raise ValueError(f"type hash {type_hash!r} is not a single key chunk")
-    return f"{domain_id}/{name}/{package}::{kind}::dds_::{name_}_/{ANY_HASH if type_hash is None else type_hash}"
+    package, kind, name = match.groups()
+    return f"{package}::{kind}::dds_::{name}_"
 
 
 def parse_ros_key(key: str) -> RosKey:
