@@ -170,6 +170,8 @@ def test_bad_messages_are_rejected_with_their_reasons_and_counted(ros_service):
     info = messages.typestore().deserialize_cdr(distorted, messages.CAMERA_INFO)
     info.d = np.array([0.1, 0.0, 0.0, 0.0, 0.0])
     robot.put(TOPICS["info"], messages.CAMERA_INFO, messages.typestore().serialize_cdr(info, messages.CAMERA_INFO))
+    # each topic has its own callback: let the pairs above form before a colour 5 s later makes them stale
+    time.sleep(0.5)
     robot.put(TOPICS["rgb"], messages.IMAGE, messages.encode_image(f0.timestamp + 5.0, "c", f0.rgb, "rgb8"))  # unpaired
     time.sleep(1.0)
     status = node.status()
