@@ -44,6 +44,8 @@ class Ros2Results:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="objslam-ros2-results", daemon=True)
         self._seen: dict[str, Any] = {}
+        self._kf_times: list[float] = []  # the keyframes' times, from the records read so far
+        self._records_read = 0
 
     def key(self, name: str) -> str:
         typename = {"path": messages.PATH, "pose": messages.POSE_STAMPED, "objects": messages.MARKER_ARRAY}[name]
@@ -87,26 +89,37 @@ class Ros2Results:
                 log.exception("could not publish the ROS 2 results")
 
     def publish_changes(self) -> None:
-        """Publish what changed since the last call (path when the graph moved, pose per frame, objects)."""
+        """Publish what changed since the last call (path when the graph moved, pose per frame, objects).
+
+        The core's lock (which the worker needs for every frame) is held only to read what changed: nothing
+        when no frame came, the keyframe times of the new records only."""
         node, frame_id = self.node, self.settings.map_frame
         summary = node.summary
         with node.hold_core():
             core = node.core
             if not core.records:
                 return
-            graph_version = (core.graph.updates, core.graph.num_keyframes)
+            versions = {
+                "pose": len(core.records),
+                "path": (core.graph.updates, core.graph.num_keyframes),
+                "objects": (summary.objects_key, summary.loops_key),
+            }
+            changed = [name for name, version in versions.items() if self._changed(name, version)]
+            if not changed:
+                return
             kf_poses = core.graph.poses()
             last = core.records[-1]
             pose = kf_poses[last.keyframe] @ last.from_keyframe
-            kf_times = [r.timestamp for r in core.records if r.is_keyframe]
+            self._kf_times += [r.timestamp for r in core.records[self._records_read :] if r.is_keyframe]
+            self._records_read = len(core.records)
         stamp = last.timestamp
-        if self._changed("pose", last.timestamp):
+        if "pose" in changed:
             self._put("pose", messages.encode_pose_stamped(stamp, frame_id, pose), stamp)
-        if self._changed("path", graph_version):
-            n = min(len(kf_times), len(kf_poses))
-            path = list(zip(kf_times[:n], kf_poses[:n], strict=True))
+        if "path" in changed:
+            n = min(len(self._kf_times), len(kf_poses))
+            path = list(zip(self._kf_times[:n], kf_poses[:n], strict=True))
             self._put("path", messages.encode_path(stamp, frame_id, path), stamp)
-        if self._changed("objects", (summary.objects_key, summary.loops_key)):
+        if "objects" in changed:
             loops = _segments(summary.loops, kf_poses)
             self._put("objects", messages.encode_marker_array(stamp, frame_id, summary.objects, loops), stamp)
 
