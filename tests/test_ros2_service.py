@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import time
+from contextlib import contextmanager
 from dataclasses import replace
 
 import numpy as np
@@ -81,11 +82,11 @@ class Robot:
             pub.undeclare()
 
 
-@pytest.fixture
-def ros_service():
-    """A service node with the ROS 2 bridge on 127.0.0.1, and a robot session connected to it."""
-    port = free_port()
-    settings = _settings(port)
+@contextmanager
+def _serving(**ros2):
+    """A service node with the ROS 2 bridge on 127.0.0.1 (``ros2`` settings over ``_settings``'), and a robot
+    session connected to it: (node, bridge, robot, robot's session)."""
+    settings = _settings(free_port(), **ros2)
     server = open_session(settings.zenoh, "server")
     node = ServiceNode(settings, server)
     node.start()
@@ -93,13 +94,21 @@ def ros_service():
     bridge.start(server)
     robot_session = open_session(settings.zenoh, "client")
     robot = Robot(robot_session)
-    time.sleep(0.5)  # routes
-    yield node, bridge, robot, robot_session
-    robot.close()
-    robot_session.close()
-    bridge.stop()
-    node.stop()
-    server.close()
+    try:
+        time.sleep(0.5)  # routes
+        yield node, bridge, robot, robot_session
+    finally:
+        robot.close()
+        robot_session.close()
+        bridge.stop()
+        node.stop()
+        server.close()
+
+
+@pytest.fixture
+def ros_service():
+    with _serving() as served:
+        yield served
 
 
 def _frames():
@@ -320,17 +329,7 @@ def _status(session: zenoh.Session, key: str) -> dict | None:
 
 
 def test_provided_detections_on_their_topic_reach_the_object_map():
-    port = free_port()
-    settings = _settings(port, detections_topic="/detections")
-    server = open_session(settings.zenoh, "server")
-    node = ServiceNode(settings, server)
-    node.start()
-    bridge = Ros2Bridge(node)
-    bridge.start(server)
-    robot_session = open_session(settings.zenoh, "client")
-    robot = Robot(robot_session)
-    try:
-        time.sleep(0.5)
+    with _serving(detections_topic="/detections") as (node, _, robot, _):
         ds = open_dataset("synthetic:room?seed=2&frames=12")
         for i in range(len(ds)):
             frame = ds.frame(i)
@@ -344,9 +343,3 @@ def test_provided_detections_on_their_topic_reach_the_object_map():
         by_class = node.status()["keyframe_detections_by_class"]
         truth = {d.label for i in range(len(ds)) for d in ds.frame(i).detections or []}
         assert by_class and set(by_class) <= truth
-    finally:
-        robot.close()
-        robot_session.close()
-        bridge.stop()
-        node.stop()
-        server.close()
