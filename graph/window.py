@@ -36,7 +36,7 @@ import numpy as np
 
 from graph.books import Books, UpdateResult
 from graph.errors import SolverError
-from graph.factors import FactorRecord, from_columns
+from graph.factors import FactorRecord, from_columns, to_columns
 from graph.keyframes import Keyframes
 from graph.landmarks import Landmarks
 from graph.pose_graph import PoseGraph
@@ -44,6 +44,7 @@ from graph.settings import GraphSettings, noise_state, window_state, with_window
 from graph.solver_messages import Replay, Update
 from graph.solver_proxy import GlobalSolver
 from graph.window_factors import Estimate, FactorIndex, anchored, landmarks_of, localize, window_factors
+from graph.window_state import joined
 
 log = logging.getLogger(__name__)
 
@@ -303,32 +304,48 @@ class WindowedGraph(Keyframes, Landmarks):
         """``PoseGraph.state()``'s format (the whole graph's replay log), plus the window: where it starts, the
         landmarks in the solver and the removed factors; once rebuilt, also the fixed keyframes and frozen
         landmarks, the window's own iSAM2 (its ``PoseGraph.state()``, replayed as it is) and which of its
-        factors is which (before that the window is the whole graph, replayed from the log)."""
+        factors is which (before that the window is the whole graph, replayed from the log). It is
+        ``graph.window_state.joined`` of ``parts()``."""
+        return joined(*self.parts())
+
+    def parts(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """``state()`` in two parts: what the window bounds, and the append-only logs (live, not copied: the
+        factor records, guesses and update log of the whole graph, and the fixed past, which a roll replaces)."""
         books = self.books
-        window = {
+        pending = [r for observations in books.pending.values() for r in observations]
+        window: dict[str, Any] = {
             "settings": window_state(self.settings),
             "start": self.start,
             "landmarks": np.array(sorted(books.landmarks), np.int64),
             "removed": np.array(sorted(books.removed), np.int64),
         }
+        small: dict[str, Any] = {
+            "noise": noise_state(self.settings),
+            "factorization": self.factorization,
+            "pending_landmarks": np.array(list(books.pending), np.int64),
+            "pending": to_columns(pending),
+            "window": window,
+        }
+        logs: dict[str, Any] = {
+            "factors": books.factors,
+            "initial": books.initial,
+            "landmark_initial": books.landmark_initial,
+            "updates": books.log,
+        }
         if self.rebuilt:
             frozen = sorted(self._frozen)
             window.update(
                 {
-                    "fixed": self._fixed.copy(),
                     "frozen": np.array(frozen, np.int64),
                     "frozen_estimates": np.array([self._frozen[j] for j in frozen]).reshape(-1, 3),
                     "local": self.local.state(),
                     "to_local": np.array(sorted(self._to_local.items()), np.int64).reshape(-1, 2),
                 }
             )
-        return {
-            "noise": noise_state(self.settings),
-            "factorization": self.factorization,
-            **books.columns(),
-            "estimate": self.poses(),
-            "window": window,
-        }
+            logs["fixed"] = self._fixed
+        else:  # the window is the whole graph and bounded by it: its estimate checks the replay
+            small["estimate"] = self.poses()
+        return small, logs
 
     @classmethod
     def from_state(cls, state: dict[str, Any], settings: GraphSettings | None = None) -> WindowedGraph:

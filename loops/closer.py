@@ -63,13 +63,18 @@ class LoopCloser:
         return self.acceptance.n_accepted
 
     def state(self) -> dict[str, Any]:
-        """Plain state: loop records, accepted factors, place descriptors and keyframe features."""
-        return {
-            "records": self.records,
-            "accepted": self.accepted,
-            "places": self.places.state(),
-            "keyframes": list(self.keyframes.values()),
+        """Plain state: loop records, accepted factors, place descriptors and keyframe features (``joined``
+        of ``parts``)."""
+        return joined(*self.parts())
+
+    def parts(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """``state()`` in two parts: the accepted loops with every record that was ever accepted (a retraction
+        changes those), and the append-only logs (live): the records, the keyframe entries and the places."""
+        small = {
+            "accepted": dict(self.accepted),
+            "record_fixes": {i: r for i, r in enumerate(self.records) if r.factor is not None},
         }
+        return small, {"records": self.records, "keyframes": self.keyframes, **self.places.logs()}
 
     def restore(self, state: dict[str, Any]) -> None:
         """Continue from ``state`` (also as release 0.1.0 saved it: records as dicts, loops as tuples)."""
@@ -135,3 +140,17 @@ class LoopCloser:
     def accept(self, verified: list[Verified]) -> list[LoopRecord]:
         """Gate verified candidates against the graph (``LoopAcceptance.accept``); the new records."""
         return self.acceptance.accept(verified)
+
+
+def joined(small: dict[str, Any], logs: dict[str, Any]) -> dict[str, Any]:
+    """``LoopCloser.state()`` of its parts (logs as sequences; the keyframes as a mapping or as entries)."""
+    records = list(logs["records"])
+    for i, record in small["record_fixes"].items():
+        records[i] = record
+    keyframes = logs["keyframes"]
+    return {
+        "records": records,
+        "accepted": small["accepted"],
+        "places": PlaceIndex.joined(logs),
+        "keyframes": list(keyframes.values() if isinstance(keyframes, dict) else keyframes),
+    }

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 DESCRIPTOR_SIZE = (32, 24)
+_LENGTH = DESCRIPTOR_SIZE[0] * DESCRIPTOR_SIZE[1]
 
 
 def global_descriptor(rgb: np.ndarray) -> np.ndarray:
@@ -53,8 +54,21 @@ class PlaceIndex:
 
     def state(self) -> dict:
         """The stored places as plain arrays."""
+        return PlaceIndex.joined(self.logs())
+
+    def logs(self) -> dict[str, np.ndarray]:
+        """The stored places as append-only logs: views of the arrays (growing replaces them)."""
         n = self.size
-        return {"descriptors": self._desc[:n].copy(), "timestamps": self._times[:n].copy(), "ids": self._ids[:n].copy()}
+        return {"places.descriptors": self._desc[:n], "places.timestamps": self._times[:n], "places.ids": self._ids[:n]}
+
+    @staticmethod
+    def joined(logs: dict) -> dict:
+        """``state()`` of ``logs()`` (or of the logs read back)."""
+        return {
+            "descriptors": np.array(logs["places.descriptors"], np.float32).reshape(-1, _LENGTH),
+            "timestamps": np.array(logs["places.timestamps"], float),
+            "ids": np.array(logs["places.ids"], np.int64),
+        }
 
     def restore(self, state: dict) -> None:
         n = len(state["ids"])

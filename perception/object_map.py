@@ -225,24 +225,34 @@ class ObjectMapper:
         return self.clusterer.recluster()
 
     def state(self) -> dict:
-        """Plain state: tracker, clusterer, the previous keyframe (detections, depth, pose), counters, store."""
+        """Plain state: tracker, clusterer, the previous keyframe (detections, depth, pose), counters, store
+        (``joined`` of ``parts``)."""
+        return joined(*self.parts())
+
+    def parts(self) -> tuple[dict, dict]:
+        """``state()`` in two parts: what is bounded (tracker, previous keyframe, objects, floor views) and the
+        append-only logs (live): the observation store and the clusterer's feature vectors (which a merge of
+        track runs replaces)."""
         prev = (
             None
             if self._prev is None
             else (self._prev.detections, self._prev.depth_m, self._prev.pose, self._prev.index)
         )
-        return {
+        clusterer = {k: v for k, v in self.clusterer.state().items() if k != "features"}
+        small = {
             "tracker": self.tracker.state(),
-            "clusterer": self.clusterer.state(),
+            "clusterer": clusterer,
             "prev": prev,
             "associations": self.associations,
-            "observations": {
-                "keyframe": np.array(self._obs_keyframe, np.int64),
-                "local": self._obs_local,
-                "cut": np.array(self._obs_cut, bool).reshape(-1, 2),
-            },
             "floor_views": dict(self._floor_views),
         }
+        logs = {
+            "observations.keyframe": self._obs_keyframe,
+            "observations.local": self._obs_local,
+            "observations.cut": self._obs_cut,
+            "clusterer.features": self.clusterer.features,
+        }
+        return small, logs
 
     def restore(self, state: dict) -> None:
         self.tracker.restore(state["tracker"])
@@ -278,4 +288,17 @@ def object_json(o: ObjectEllipsoid, landmark: np.ndarray | None = None) -> dict:
         "axes": np.asarray(o.axes, float).tolist(),
         "n_observations": int(o.n_observations),
         "landmark": None if landmark is None else [float(v) for v in landmark],
+    }
+
+
+def joined(small: dict, logs: dict) -> dict:
+    """``ObjectMap.state()`` of its parts (logs as sequences)."""
+    return {
+        **{k: v for k, v in small.items() if k != "clusterer"},
+        "clusterer": {**small["clusterer"], "features": list(logs["clusterer.features"])},
+        "observations": {
+            "keyframe": np.array(list(logs["observations.keyframe"]), np.int64),
+            "local": list(logs["observations.local"]),
+            "cut": np.array(list(logs["observations.cut"]), bool).reshape(-1, 2),
+        },
     }

@@ -16,6 +16,7 @@ from graph.window import WindowedGraph
 from loops.records import LoopRecord, Verified
 from slam.build import build_core
 from slam.core import SlamCore
+from slam.parts import assemble, core_parts
 from slam.records import FrameRecord, KeyframeLoops
 from slam.runner import Done, Handle, Runner
 from slam.segments import Segments, TrackingState
@@ -25,42 +26,7 @@ from slam.settings import SlamConfig
 def core_state(core: SlamCore) -> dict[str, Any]:
     """Everything needed to continue exactly where ``core`` is. Waits for the submitted stages (their results
     are part of the state). The result shares arrays with the core: serialise it before the next step."""
-    r = core.records
-    tracking = core.tracking
-    return {
-        "pending_mapping": core.settle(),
-        "objects_view": core.objects_view,
-        "mapping_errors": core.mapping_errors,
-        "camera": tracking.camera if tracking is not None else None,
-        "external_odometry": tracking.frontend.last == "odometry" if tracking else False,
-        "frontend": tracking.frontend.state() if tracking is not None else None,
-        "graph": core.graph.state(),
-        "records": {
-            "timestamp": np.array([x.timestamp for x in r]),
-            "seq": np.array([x.seq for x in r], np.int64),
-            "keyframe": np.array([x.keyframe for x in r], np.int64),
-            "is_keyframe": np.array([x.is_keyframe for x in r], bool),
-            "odometry": np.array([x.odometry for x in r]).reshape(-1, 4, 4),
-            "from_keyframe": np.array([x.from_keyframe for x in r]).reshape(-1, 4, 4),
-            "posed": np.array([x.posed for x in r], bool),
-        },
-        "kf_odometry": np.array(core.kf_odometry).reshape(-1, 4, 4),
-        "kf_points": core.kf_points,
-        "tracking_lost": core.tracking_lost,
-        "clock": core.clock.state(),
-        "segments": core.segments.state(),
-        "tracking_state": core.tracking_state.value,
-        "methods": dict(core.methods),
-        "keyframe_detections": core.keyframe_detections,
-        "detections_by_class": dict(core.detections_by_class),
-        "objects": None if core.objects is None else core.objects.state(),
-        "object_map_version": core.object_map_version,
-        "landmarks": None if core.landmarks is None else core.landmarks.state(),
-        "object_poses": np.array(core.object_poses).reshape(-1, 4, 4),
-        "reposes": core.reposes,
-        "loops": None if core.loops is None else core.loops.state(),
-        "proposer": None if core.proposer is None else core.proposer.state(),
-    }
+    return assemble(core_parts(core))
 
 
 def _loop_results(saved: Any) -> KeyframeLoops | None:
