@@ -333,7 +333,7 @@ def bench_persistence(
     keyframes: Annotated[str, typer.Option("--keyframes", help="checkpoints, comma separated")] = "100,200,300",
     write: WriteOpt = None,
 ) -> None:
-    """Snapshot capture / write / load / restore time and size against the number of keyframes."""
+    """Map store checkpoint / load / restore time and size against the number of keyframes."""
     from bench.persistence import run_persistence_bench
 
     try:

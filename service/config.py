@@ -80,8 +80,8 @@ class IngestSettings(Limits):
 class PersistenceSettings(BaseModel):
     """Snapshots of the map in ``state_dir`` (``serve --state-dir``), resumed from on start."""
 
-    every_keyframes: int = Field(10, ge=1, description="write a snapshot after this many new keyframes")
-    keep: int = Field(3, ge=2, description="snapshots kept; older ones are deleted after each write")
+    every_keyframes: int = Field(1, ge=1, description="checkpoint the map store after this many new keyframes")
+    keep: int = Field(3, ge=2, description="checkpoints kept in the map store (the older ones are fallbacks)")
 
 
 class Settings(BaseSettings):

@@ -4,8 +4,8 @@ The subscriber callback inspects each message (``ingest.Gate``: no pixel decoded
 decoder thread decodes their images (releasing the GIL), handing at most two frames to the worker thread,
 which runs the SLAM core. After each frame the worker publishes an immutable ``MapSummary``; the queryables
 answer from it through a per-version reply cache (``service.replies``), never waiting for the frame being
-processed. With a state directory the node resumes from its newest good snapshot and writes one every N
-keyframes and on ``stop``.
+processed. With a state directory the node resumes from its map store and checkpoints it every N keyframes
+and on ``stop`` (``service.map_persistence``).
 """
 
 from __future__ import annotations
@@ -29,16 +29,17 @@ from service.config import IngestSettings, Settings
 from service.events import MapEvents
 from service.ingest import Gate, IngestQueue, decode_counted
 from service.labels import LabelVocabulary
+from service.map_persistence import Persistence, service_state
 from service.map_summary import MapSummary, summarize
 from service.outputs import run_summary, write_outputs
-from service.persistence import Persistence
 from service.protocol import VERSION, FrameRejected, Reason
 from service.replies import Replies
 from service.save_requests import SaveRequests
 from service.scheduler import ThreadedRunner
 from service.stats import ServiceStats
 from slam.build import build_core
-from slam.snapshot import core_state, restore_core
+from slam.parts import core_parts
+from slam.snapshot import restore_core
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +79,7 @@ class ServiceNode:
         if settings.state_dir is not None:
             ps = settings.persistence
             self.persistence = Persistence(settings.state_dir, settings.robot, ps.every_keyframes, ps.keep)
-            self.persistence.resume(self._restore)
+            self.persistence.resume(self._restore, service_state)
         self._publish_summary()
 
     # ------------------------------------------------------------ lifecycle
@@ -132,6 +133,8 @@ class ServiceNode:
             self._discard_queued()
             self.snapshot(final=True)
             self.core.close()
+            if self.persistence is not None:
+                self.persistence.close()
         for entity in reversed(self._entities):
             self._undeclare(entity)
         self._entities.clear()
@@ -265,12 +268,10 @@ class ServiceNode:
     # ------------------------------------------------------------ persistence
 
     def snapshot(self, final: bool = False) -> bool:
-        """Write a snapshot when N keyframes were added since the last one (or, ``final``, anything changed).
-
-        Called by the worker between frames, or after it stopped: no other thread changes the SLAM core, so
-        only taking its plain state needs the lock (iSAM2 updates a cache that queries read); pickling and
-        writing run without it. A failed write is logged and counted (``persistence.failed_writes``).
-        """
+        """Checkpoint the map store when N keyframes were added since the last checkpoint (or, ``final``,
+        anything changed). Called by the worker between frames, or after it stopped: no other thread changes
+        the core, so only taking its parts needs the lock (iSAM2 updates a cache that queries read); encoding
+        the new rows and writing run without it. A failed write is counted (``persistence.failed_writes``)."""
         p = self.persistence
         if p is None:
             return False
@@ -280,31 +281,31 @@ class ServiceNode:
             return False
         t0 = time.perf_counter()
         with self._lock:
-            state = self._state()
-        payload = p.capture(keyframes, frames, state)
-        capture_s = time.perf_counter() - t0
-        if p.save(payload, keyframes, frames, capture_s) is None:
+            small, logs = self._parts()
+        if not p.save(small, logs, keyframes, frames, time.perf_counter() - t0):
             return False
         self._saved_completed = completed
         self.stats.time("snapshot", time.perf_counter() - t0)
         return True
 
-    def _state(self) -> dict[str, Any]:
-        """The SLAM core and the frame counters. Frames still queued are not in the core's state, so the
-        saved ``received`` counts only the frames the state accounts for."""
+    def _parts(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """The core's parts (``slam.parts``) with the counters: small part, live logs. Queued frames are not in
+        the core's state, so the saved ``received`` counts only the frames the state accounts for."""
         stats = self.stats.counters()
         stats["received"] = (
             stats["processed"] + sum(stats["rejected"].values()) + sum(stats["errors"].values()) + self.queue.dropped
         )
-        return {
-            "pipeline": core_state(self.core),
+        parts = core_parts(self.core)
+        small = {
+            "pipeline": parts.small,
             "stats": stats,
             "frames_dropped": self.queue.dropped,
             "settings": self.settings.map_sections(),
         }
+        return small, parts.logs
 
     def _restore(self, state: dict[str, Any]) -> None:
-        """Continue from a snapshot's state (built completely before anything is replaced)."""
+        """Continue from a checkpoint's (or an old snapshot's) state, built whole before anything is replaced."""
         saved, current = state["settings"], self.settings.map_sections()
         changed = sorted(k for k in saved.keys() | current.keys() if saved.get(k) != current.get(k))
         if changed:
@@ -331,8 +332,6 @@ class ServiceNode:
     def summary(self) -> MapSummary:
         with self._summary_lock:
             return self._summary
-
-    # ------------------------------------------------------------ queries
 
     def write_outputs(self, out: Path) -> dict[str, Any]:
         """The outputs of SPEC section 4 of the map as it stands, into ``out``; returns the summary."""

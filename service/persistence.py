@@ -28,19 +28,15 @@ import struct
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from service.config import ConfigError
-
 log = logging.getLogger(__name__)
 
-FIRST_BACKOFF_S, MAX_BACKOFF_S = 1.0, 300.0
-"""After a failed snapshot write the next periodic one waits this long, doubling up to the maximum."""
 MAGIC = b"OBJSLAM1"
 HEADER = struct.Struct("<8sQ32s")
 TABLE = struct.Struct("<QQ")
@@ -225,127 +221,6 @@ class SnapshotStore:
                 skipped.append((path.name, str(exc)))
                 continue
             yield path, state
-
-
-class Persistence:
-    """A service's snapshots: resume from the newest good one, write one every ``every_keyframes`` keyframes.
-
-    A snapshot holds ``{"robot", "created", "keyframes", "frames_processed", "state"}``; ``state`` is what
-    the service gives (its pipeline's plain state and counters). ``status()`` reports what was written and
-    what the service resumed from.
-    """
-
-    def __init__(self, directory: Path, robot: str, every_keyframes: int = 10, keep: int = 3):
-        self.directory = Path(directory)
-        self.store = SnapshotStore(self.directory / "snapshots", keep)
-        self.robot = robot
-        self.every_keyframes = every_keyframes
-        self.written = self.failed = 0
-        self.last: dict[str, Any] | None = None
-        self.resumed_from: dict[str, Any] | None = None
-        self.skipped: list[tuple[str, str]] = []
-        self._saved = (0, 0)  # (keyframes, frames processed) of the newest snapshot
-        self._backoff_s = self._retry_at = 0.0  # after a failed write: the wait before the next try, and its end
-        self.last_error: str | None = None
-
-    def resume(self, restore: Callable[[dict[str, Any]], None]) -> bool:
-        """Call ``restore`` with the newest good snapshot's state; one it fails on counts as bad too.
-
-        Raises ConfigError when the directory holds another robot's map.
-        """
-        for path, snap in self.store.candidates(self.skipped):
-            if snap.get("robot", self.robot) != self.robot:
-                raise ConfigError(
-                    f"state dir {self.directory} holds the map of robot {snap['robot']!r}, "
-                    f"not {self.robot!r}: give each robot its own --state-dir"
-                )
-            try:
-                restore(snap["state"])
-            except Exception as exc:  # e.g. a snapshot of an incompatible version: fall back, never crash
-                log.exception("snapshot %s cannot be restored; trying the previous one", path.name)
-                self.skipped.append((path.name, f"cannot be restored: {exc!r}"))
-                continue
-            self._saved = (snap["keyframes"], snap["frames_processed"])
-            self.resumed_from = {
-                "file": path.name,
-                "keyframes": snap["keyframes"],
-                "frames_processed": snap["frames_processed"],
-                "created": snap["created"],
-            }
-            log.info("resumed from %s: %d keyframes, %d frames processed", path.name, *self._saved)
-            return True
-        if self.skipped:
-            log.error("no usable snapshot in %s: starting a new map", self.store.directory)
-        return False
-
-    def due(self, keyframes: int) -> bool:
-        """True once ``every_keyframes`` keyframes were added since the newest snapshot, and no failed write
-        is waiting out its backoff (a full or read-only disk is not retried after every frame)."""
-        return keyframes - self._saved[0] >= self.every_keyframes and time.monotonic() >= self._retry_at
-
-    def changed(self, keyframes: int, frames: int) -> bool:
-        """True when there is work that the newest snapshot does not hold."""
-        return (keyframes, frames) != self._saved
-
-    def capture(self, keyframes: int, frames: int, state: dict[str, Any]) -> list[memoryview]:
-        """The payload of a snapshot of ``state``; it shares memory with ``state``: save it before that changes."""
-        return encode(
-            {
-                "robot": self.robot,
-                "created": time.time(),
-                "keyframes": keyframes,
-                "frames_processed": frames,
-                "state": state,
-            }
-        )
-
-    def save(self, payload: list[memoryview], keyframes: int, frames: int, capture_s: float = 0.0) -> Written | None:
-        """Write a captured payload; a failed write is logged and counted (the service keeps mapping)."""
-        try:
-            written = self.store.write(payload)
-        except OSError as exc:
-            self.failed += 1
-            self._backoff_s = min(MAX_BACKOFF_S, self._backoff_s * 2 if self._backoff_s else FIRST_BACKOFF_S)
-            self._retry_at = time.monotonic() + self._backoff_s
-            self.last_error = str(exc)
-            log.error(
-                "could not write a snapshot in %s: %s; next try in %.0f s", self.store.directory, exc, self._backoff_s
-            )
-            return None
-        self._backoff_s, self._retry_at, self.last_error = 0.0, 0.0, None
-        self.written += 1
-        self._saved = (keyframes, frames)
-        self.last = {
-            "file": written.path.name,
-            "keyframes": keyframes,
-            "frames_processed": frames,
-            "bytes": written.size,
-            "capture_ms": round(capture_s * 1e3, 3),
-            "write_ms": round(written.write_s * 1e3, 3),
-        }
-        log.info(
-            "snapshot %s: %d keyframes, %.1f MB, capture %.0f ms, write %.0f ms",
-            written.path.name,
-            keyframes,
-            written.size / 1e6,
-            capture_s * 1e3,
-            written.write_s * 1e3,
-        )
-        return written
-
-    def status(self) -> dict[str, Any]:
-        """The ``persistence`` object of the status reply (docs/protocol.md)."""
-        return {
-            "state_dir": str(self.directory),
-            "every_keyframes": self.every_keyframes,
-            "snapshots_written": self.written,
-            "failed_writes": self.failed,
-            "last_error": self.last_error,
-            "retry_in_s": round(max(0.0, self._retry_at - time.monotonic()), 1) if self.last_error else None,
-            "last_snapshot": self.last,
-            "resumed_from": self.resumed_from,
-            "skipped_snapshots": [{"file": f, "reason": r} for f, r in self.skipped],
-        }
 
 
 def _read(path: Path) -> bytearray:

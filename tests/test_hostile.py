@@ -162,21 +162,38 @@ CRAFTED = {
 
 @pytest.mark.parametrize("attack", sorted(CRAFTED))
 def test_a_crafted_snapshot_is_refused_without_running_code(tmp_path, attack):
+    import hashlib
+    import json
     import pickle
 
-    from service.persistence import Persistence, SnapshotStore
+    from service.map_persistence import Persistence, service_state
+    from service.map_store import MapStore
+    from service.persistence import SnapshotStore
 
     marker = tmp_path / "pwned"
     code = f"__import__('pathlib').Path({str(marker)!r}).write_text('x')"
     stream = pickle.PROTO + b"\x04" + CRAFTED[attack](code) + pickle.STOP
-    store = SnapshotStore(tmp_path / "state" / "snapshots")
+    store = SnapshotStore(tmp_path / "old" / "snapshots")  # a state directory of the snapshot release
     store.write(_payload_of(stream))
-    restored = []
-    persistence = Persistence(tmp_path / "state", "robot1", 10, 3)
-    persistence.resume(restored.append)
+    restored: list = []
+    persistence = Persistence(tmp_path / "old", "robot1", 10, 3)
+    persistence.resume(restored.append, service_state)
     assert not marker.exists()
     assert restored == []  # nothing usable: a new map
     assert persistence.status()["skipped_snapshots"][0]["reason"].startswith("snapshot refers to")
+
+    blob = b"".join(_payload_of(stream))  # the same payload as a checkpoint of a map store
+    (tmp_path / "new").mkdir()
+    db = MapStore(tmp_path / "new" / "map.db", "robot1").db
+    db.execute(
+        "INSERT INTO checkpoints (session, created, keyframes, frames, logs, small, sha) VALUES (1, 0, 5, 50, ?, ?, ?)",
+        (json.dumps({}), blob, hashlib.sha256(blob).digest()),
+    )
+    db.close()
+    persistence = Persistence(tmp_path / "new", "robot1", 10, 3)
+    persistence.resume(restored.append, service_state)
+    assert not marker.exists() and restored == []
+    assert "snapshot refers to" in persistence.status()["skipped_snapshots"][0]["reason"]
 
 
 # ---------------------------------------------------------------- bounded decoding
@@ -438,28 +455,29 @@ def test_a_second_save_within_the_interval_is_answered_busy(served, tmp_path):
 
 
 def test_failing_snapshot_writes_back_off_exponentially_and_are_reported(tmp_path):
-    import shutil
     import time
 
-    from service.persistence import Persistence
+    from service.map_persistence import Persistence
 
     persistence = Persistence(tmp_path / "state", "robot1", every_keyframes=1)
-    shutil.rmtree(persistence.store.directory)
-    persistence.store.directory.write_text("not a directory")  # every write now fails, even as root
-    payload = persistence.capture(5, 50, {"x": np.zeros(3)})
+    db = persistence.store.db
+    pages = db.execute("PRAGMA page_count").fetchone()[0]
+    db.execute(f"PRAGMA max_page_count = {pages}")  # a full disk: every write that needs a page now fails
+    small, logs = {"x": np.zeros(3)}, {"rows": np.zeros((5000, 4))}
     assert persistence.due(5)
-    assert persistence.save(payload, 5, 50) is None
+    assert not persistence.save(small, logs, 5, 50)
     status = persistence.status()
     assert status["failed_writes"] == 1 and status["last_error"] and 0 < status["retry_in_s"] <= 1.0
     assert not persistence.due(6)  # waits out the backoff instead of retrying after every frame
     time.sleep(1.05)
-    assert persistence.due(6) and persistence.save(payload, 6, 60) is None
+    assert persistence.due(6) and not persistence.save(small, logs, 6, 60)
     assert 1.0 < persistence.status()["retry_in_s"] <= 2.0  # doubled
-    persistence.store.directory.unlink()
-    persistence.store.directory.mkdir()
+    db.execute("PRAGMA max_page_count = 1073741823")  # space again
     time.sleep(2.05)
-    assert persistence.due(7) and persistence.save(payload, 7, 70) is not None
+    assert persistence.due(7) and persistence.save(small, logs, 7, 70)
     assert persistence.status()["last_error"] is None and persistence.status()["retry_in_s"] is None
+    loaded = persistence.store.load()  # the rows of the failed checkpoints were written with the good one
+    assert loaded is not None and loaded.keyframes == 7 and len(loaded.logs["rows"]) == 5000
 
 
 def test_a_message_above_the_payload_limit_is_dropped_by_the_transport_and_the_link_survives(tmp_path):

@@ -22,8 +22,10 @@ from scipy.spatial.transform import Rotation
 from graph.geometry import pose_from_tum
 from graph.pose_graph import PoseGraph
 from service.config import ConfigError, load_settings
+from service.map_persistence import Persistence
+from service.map_store import MapStore
 from service.node import ServiceNode
-from service.persistence import HEADER, Persistence, SnapshotError, SnapshotStore, decode, encode, seal, unseal
+from service.persistence import HEADER, SnapshotError, SnapshotStore, decode, encode, seal, unseal
 from service.protocol import decode_frame, encode_frame
 from service.replay import frame_publisher
 from service.zenoh_session import open_session
@@ -191,9 +193,9 @@ def test_a_snapshot_referring_to_anything_but_plain_data_is_refused_without_runn
 
 
 def test_resume_refuses_another_robots_state_dir(tmp_path):
-    Persistence(tmp_path, "alpha").save(Persistence(tmp_path, "alpha").capture(1, 1, {}), 1, 1)
+    assert Persistence(tmp_path, "alpha").save({}, {}, 1, 1)
     with pytest.raises(ConfigError, match="alpha"):
-        Persistence(tmp_path, "beta").resume(lambda state: None)
+        Persistence(tmp_path, "beta")
 
 
 def _feed(node: ServiceNode, session, payloads: list[bytes]) -> None:
@@ -206,7 +208,7 @@ def _feed(node: ServiceNode, session, payloads: list[bytes]) -> None:
     pub.undeclare()
 
 
-def test_corrupt_newest_snapshot_falls_back_to_the_previous_one_and_reports_it(tmp_path, payloads, reference, caplog):
+def test_corrupt_newest_checkpoint_falls_back_to_the_previous_one_and_reports_it(tmp_path, payloads, reference, caplog):
     settings = load_settings(
         None, {"state_dir": tmp_path, "persistence": {"every_keyframes": EVERY}, "ingest": {"queue_size": 1000}}
     )  # zenoh delivers in bursts: drop nothing
@@ -215,17 +217,19 @@ def test_corrupt_newest_snapshot_falls_back_to_the_previous_one_and_reports_it(t
         node = ServiceNode(settings, session)
         node.start()
         _feed(node, session, payloads[:60])
-        node.stop()  # the final snapshot (60 frames) after the periodic ones
-        snaps = node.persistence.store.snapshots()
-        assert len(snaps) == 3 and node.persistence.written >= 3
-        snaps[-1].write_bytes(snaps[-1].read_bytes()[:-1000])  # truncated newest
+        node.stop()  # the final checkpoint (60 frames) after the periodic ones
+        store = MapStore(tmp_path / "map.db", settings.robot)
+        ids = [c[0] for c in store.checkpoints()]
+        assert len(ids) == 3 and node.persistence.written >= 3
+        store.db.execute("UPDATE checkpoints SET small = substr(small, 1, length(small) - 1000) WHERE id = ?", ids[:1])
+        store.close()  # the newest one's state lost its last 1000 bytes, as a torn page would
 
-        with caplog.at_level(logging.ERROR, logger="service.persistence"):
+        with caplog.at_level(logging.ERROR, logger="service.map_store"):
             resumed = ServiceNode(settings, session)
-        assert "snapshot-" in caplog.text and "truncated" in caplog.text
+        assert f"checkpoint {ids[0]} is unusable" in caplog.text and "checksum mismatch" in caplog.text
         status = resumed.status()["persistence"]
-        assert status["resumed_from"]["file"] == snaps[-2].name
-        assert status["skipped_snapshots"][0]["file"] == snaps[-1].name
+        assert status["resumed_from"]["file"] == f"map.db#checkpoint-{ids[1]}"
+        assert status["skipped_snapshots"][0]["file"] == f"checkpoint-{ids[0]}"
         m = status["resumed_from"]["frames_processed"]
         assert m < 60 and status["resumed_from"]["keyframes"] % EVERY == 0
         assert resumed.status()["frames_processed"] == m
@@ -375,7 +379,7 @@ def test_serve_resumes_after_sigterm_with_nothing_lost(router, tmp_path, referen
         (state / "trajectory.tum").unlink()  # the shutdown writes it again
     finally:
         assert _stop(serve) == 0, log.read_text()
-    assert (state / "trajectory.tum").is_file() and (state / "snapshots").is_dir()
+    assert (state / "trajectory.tum").is_file() and (state / "map.db").is_file()
 
     serve = _serve(endpoint, state, log)
     try:

@@ -1,0 +1,196 @@
+"""A service's map in its state directory: resume from the map store, checkpoint it as keyframes arrive.
+
+The store is ``<state_dir>/map.db`` (``service.map_store``). Each checkpoint writes what is new since the
+previous one, so its cost follows the new keyframes, not the map. A state directory of the snapshot release
+(``<state_dir>/snapshots/``, ``service.persistence``) is migrated: its newest good snapshot is restored and the
+first checkpoint writes it into the store; the snapshots are then left as they were, unused.
+
+A store that cannot be opened (not a database, a newer schema) is moved aside as ``map.db.unusable-<time>``
+with the reason logged and in ``status``, and a new map begins; one of another robot is refused.
+"""
+
+from __future__ import annotations
+
+import logging
+import sqlite3
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from service.config import ConfigError
+from service.map_store import SCHEMA_VERSION, MapStore, StoreError
+from service.persistence import SnapshotStore
+from slam.parts import COLD, CoreParts, assemble
+
+log = logging.getLogger(__name__)
+
+FIRST_BACKOFF_S, MAX_BACKOFF_S = 1.0, 300.0
+"""After a failed checkpoint the next periodic one waits this long, doubling up to the maximum."""
+STORE_NAME = "map.db"
+
+
+class Persistence:
+    """Resume from the newest good checkpoint; checkpoint every ``every_keyframes`` keyframes.
+
+    A checkpoint holds the state the service gives as a small part and append-only logs (``slam.parts``);
+    ``status()`` reports what was written and what the service resumed from.
+    """
+
+    def __init__(self, directory: Path, robot: str, every_keyframes: int = 1, keep: int = 3):
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.robot = robot
+        self.every_keyframes = every_keyframes
+        self.skipped: list[tuple[str, str]] = []
+        self.store = self._open(keep)
+        self.written = self.failed = 0
+        self.last: dict[str, Any] | None = None
+        self.resumed_from: dict[str, Any] | None = None
+        self._saved = (0, 0)  # (keyframes, frames processed) of the newest checkpoint
+        self._backoff_s = self._retry_at = 0.0  # after a failed write: the wait before the next try, and its end
+        self.last_error: str | None = None
+
+    def _open(self, keep: int) -> MapStore:
+        path = self.directory / STORE_NAME
+        try:
+            store = MapStore(path, self.robot, COLD, keep)
+        except StoreError as exc:
+            if "holds the map of robot" in str(exc):
+                raise ConfigError(str(exc)) from exc
+            aside = path.with_name(f"{STORE_NAME}.unusable-{int(time.time())}")
+            log.error("map store %s is unusable (%s): moved to %s, starting a new map", path, exc, aside.name)
+            for suffix in ("", "-wal", "-shm"):
+                source = path.with_name(path.name + suffix)
+                if source.exists():
+                    source.rename(aside.with_name(aside.name + suffix))
+            self.skipped.append((STORE_NAME, str(exc)))
+            store = MapStore(path, self.robot, COLD, keep)
+        return store
+
+    def resume(self, restore: Callable[[dict[str, Any]], None], join: Callable[[dict, dict], dict]) -> bool:
+        """Restore the newest good checkpoint (``restore(join(small, logs))``), else migrate the newest good
+        snapshot of an older release; start this run's session. True when something was resumed."""
+        resumed = self._resume_store(restore, join) or self._migrate(restore)
+        self.store.start_session({"resumed": self.resumed_from})
+        return resumed
+
+    def _resume_store(self, restore: Callable[[dict[str, Any]], None], join: Callable[[dict, dict], dict]) -> bool:
+        while True:
+            try:
+                loaded = self.store.load()
+            except StoreError as exc:
+                self.skipped.append((STORE_NAME, str(exc)))
+                return False
+            self.skipped.extend(s for s in self.store.skipped if s not in self.skipped)
+            if loaded is None:
+                return False
+            try:
+                restore(join(loaded.small, loaded.logs))
+            except Exception as exc:  # e.g. a state of an incompatible version: the one before, never crash
+                log.exception("checkpoint %d cannot be restored; trying the one before", loaded.checkpoint)
+                self.skipped.append((f"checkpoint-{loaded.checkpoint}", f"cannot be restored: {exc!r}"))
+                self.store.forget(loaded.checkpoint)
+                continue
+            source = f"{STORE_NAME}#checkpoint-{loaded.checkpoint}"
+            self._resumed(source, loaded.keyframes, loaded.frames, loaded.created)
+            return True
+
+    def _migrate(self, restore: Callable[[dict[str, Any]], None]) -> bool:
+        """Restore the newest good snapshot of a release before the map store (``snapshots/``)."""
+        directory = self.directory / "snapshots"
+        if not directory.is_dir():
+            return False
+        for path, snap in SnapshotStore(directory).candidates(self.skipped):
+            if snap.get("robot", self.robot) != self.robot:
+                raise ConfigError(
+                    f"state dir {self.directory} holds the map of robot {snap['robot']!r}, "
+                    f"not {self.robot!r}: give each robot its own --state-dir"
+                )
+            try:
+                restore(snap["state"])
+            except Exception as exc:
+                log.exception("snapshot %s cannot be restored; trying the previous one", path.name)
+                self.skipped.append((path.name, f"cannot be restored: {exc!r}"))
+                continue
+            self._resumed(f"snapshots/{path.name}", snap["keyframes"], snap["frames_processed"], snap["created"])
+            self._saved = (0, 0)  # the first checkpoint writes it all into the store
+            log.info("migrating %s into the map store %s", path, STORE_NAME)
+            return True
+        return False
+
+    def _resumed(self, source: str, keyframes: int, frames: int, created: float) -> None:
+        self._saved = (keyframes, frames)
+        self.resumed_from = {"file": source, "keyframes": keyframes, "frames_processed": frames, "created": created}
+        log.info("resumed from %s: %d keyframes, %d frames processed", source, keyframes, frames)
+
+    def due(self, keyframes: int) -> bool:
+        """True once ``every_keyframes`` keyframes were added since the newest checkpoint, and no failed write
+        is waiting out its backoff (a full or read-only disk is not retried after every frame)."""
+        return keyframes - self._saved[0] >= self.every_keyframes and time.monotonic() >= self._retry_at
+
+    def changed(self, keyframes: int, frames: int) -> bool:
+        """True when there is work that the newest checkpoint does not hold."""
+        return (keyframes, frames) != self._saved
+
+    def save(
+        self, small: dict[str, Any], logs: dict[str, Any], keyframes: int, frames: int, capture_s: float = 0.0
+    ) -> bool:
+        """Checkpoint ``small`` and the new rows of ``logs`` (live: call before they change); a failed write is
+        logged and counted (the service keeps mapping, the rows are written with the next checkpoint)."""
+        t0, before = time.perf_counter(), self.store.bytes_written
+        try:
+            checkpoint = self.store.checkpoint(small, logs, keyframes, frames)
+        except (OSError, sqlite3.Error) as exc:
+            self.failed += 1
+            self._backoff_s = min(MAX_BACKOFF_S, self._backoff_s * 2 if self._backoff_s else FIRST_BACKOFF_S)
+            self._retry_at = time.monotonic() + self._backoff_s
+            self.last_error = str(exc)
+            log.error("could not checkpoint %s: %s; next try in %.0f s", self.store.path, exc, self._backoff_s)
+            return False
+        self._backoff_s, self._retry_at, self.last_error = 0.0, 0.0, None
+        self.written += 1
+        self._saved = (keyframes, frames)
+        self.last = {
+            "file": f"{STORE_NAME}#checkpoint-{checkpoint}",
+            "keyframes": keyframes,
+            "frames_processed": frames,
+            "bytes": self.store.bytes_written - before,
+            "capture_ms": round(capture_s * 1e3, 3),
+            "write_ms": round((time.perf_counter() - t0) * 1e3, 3),
+        }
+        return True
+
+    def status(self) -> dict[str, Any]:
+        """The ``persistence`` object of the status reply (docs/protocol.md)."""
+        return {
+            "state_dir": str(self.directory),
+            "every_keyframes": self.every_keyframes,
+            "snapshots_written": self.written,
+            "failed_writes": self.failed,
+            "last_error": self.last_error,
+            "retry_in_s": round(max(0.0, self._retry_at - time.monotonic()), 1) if self.last_error else None,
+            "last_snapshot": self.last,
+            "resumed_from": self.resumed_from,
+            "skipped_snapshots": [{"file": f, "reason": r} for f, r in self.skipped],
+            "store": {
+                "path": str(self.store.path),
+                "schema_version": SCHEMA_VERSION,
+                "session": self.store.session,
+                "bytes": _size(self.store.path),
+            },
+        }
+
+    def close(self) -> None:
+        self.store.close()
+
+
+def _size(path: Path) -> int:
+    """Bytes of a SQLite database with its write-ahead log."""
+    return sum(p.stat().st_size for p in (path, path.with_name(path.name + "-wal")) if p.exists())
+
+
+def service_state(small: dict[str, Any], logs: dict[str, Any]) -> dict[str, Any]:
+    """A checkpoint's parts as the state ``ServiceNode._restore`` reads: the core's (``small["pipeline"]`` and
+    the logs) in ``slam.snapshot.core_state``'s format, the service's counters as they are."""
+    return {**small, "pipeline": assemble(CoreParts(small["pipeline"], logs))}

@@ -1,0 +1,401 @@
+"""The map store: one SQLite database in the state directory (``map.db``), written a little at every keyframe.
+
+What it holds (schema ``SCHEMA_VERSION``, ``meta.schema_version``; ``MIGRATIONS`` bring older stores up):
+
+- ``chunks``: the rows of the SLAM core's append-only logs (``slam.parts``), a chunk per checkpoint with the
+  rows new since the previous one. Trailing chunks are merged ``FANOUT`` at a time into one of the next level
+  (re-encoded from the live log, no read), so a log of any length is a few dozen chunks.
+- ``cold``: the cold logs' rows (``slam.parts.COLD``: loop-closure features, map points), one per keyframe,
+  never merged and read back one by one, on demand.
+- ``checkpoints``: per checkpoint, the length and generation of every log, and the small part of the state.
+  A log whose container was replaced (a window roll) starts a new generation, written whole.
+- ``sessions``: one row per run of the service on this map.
+
+A checkpoint is one transaction: its new chunks, cold rows and the checkpoint row commit together or not at
+all (WAL mode, ``synchronous=NORMAL``: a killed process loses nothing committed). Every blob carries its
+SHA-256; a checkpoint is used only when its blob and every chunk it needs verify, else the one before it.
+Blobs are ``service.persistence.encode`` payloads, read with its plain-data unpickler.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import sqlite3
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from itertools import chain, islice
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from service.persistence import SnapshotError, decode, encode
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+FANOUT = 16  # trailing chunks of one level merged into one of the next
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS sessions (
+    id INTEGER PRIMARY KEY, started REAL NOT NULL, robot TEXT NOT NULL, info TEXT NOT NULL DEFAULT '{}');
+CREATE TABLE IF NOT EXISTS checkpoints (
+    id INTEGER PRIMARY KEY, session INTEGER NOT NULL, created REAL NOT NULL, keyframes INTEGER NOT NULL,
+    frames INTEGER NOT NULL, logs TEXT NOT NULL, small BLOB NOT NULL, sha BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS chunks (
+    log TEXT NOT NULL, generation INTEGER NOT NULL, first INTEGER NOT NULL, count INTEGER NOT NULL,
+    level INTEGER NOT NULL, data BLOB NOT NULL, sha BLOB NOT NULL, PRIMARY KEY (log, generation, first));
+CREATE TABLE IF NOT EXISTS cold (
+    log TEXT NOT NULL, generation INTEGER NOT NULL, idx INTEGER NOT NULL, data BLOB NOT NULL,
+    sha BLOB NOT NULL, PRIMARY KEY (log, generation, idx));
+"""
+MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {}
+"""Schema version -> the step that brings a store of that version to the next (none yet: version 1 is the
+first; a store without ``meta.schema_version`` is version 0, an empty file)."""
+
+
+class StoreError(Exception):
+    """The map store cannot be opened or read: corrupt, truncated, of a newer schema or another robot's."""
+
+
+def _blob(value: Any) -> tuple[bytes, bytes]:
+    data = b"".join(encode(value))
+    return data, hashlib.sha256(data).digest()
+
+
+def _unblob(data: bytes, sha: bytes, what: str) -> Any:
+    if hashlib.sha256(data).digest() != sha:
+        raise StoreError(f"{what}: checksum mismatch")
+    try:
+        return decode(bytearray(data))
+    except SnapshotError as exc:
+        raise StoreError(f"{what}: {exc}") from exc
+
+
+def kind_of(rows: Any) -> str:
+    """How a log's rows are held: ``array``, ``dict`` (rows are its items) or ``list``."""
+    return "array" if isinstance(rows, np.ndarray) else "dict" if isinstance(rows, dict) else "list"
+
+
+def tail(rows: Any, start: int, stop: int | None = None) -> Any:
+    """Rows ``[start, stop)`` of a log: an array slice, a list slice, or a dict's items as a list."""
+    if isinstance(rows, dict):
+        return list(islice(rows.items(), start, stop))
+    return rows[start:stop] if isinstance(rows, np.ndarray) else list(rows[start:stop])
+
+
+def token(rows: Any) -> int:
+    """Identity of a log's container: an array view counts as the array it views (growing replaces it)."""
+    base = rows.base if isinstance(rows, np.ndarray) and rows.base is not None else rows
+    return id(base)
+
+
+def join(kind: str, pieces: list[Any], length: int) -> Any:
+    """A log of ``kind`` from its chunks' rows, cut to ``length``."""
+    if kind == "array":
+        return np.concatenate(pieces)[:length] if pieces else np.zeros(0)
+    rows = list(islice(chain.from_iterable(pieces), length))
+    return dict(rows) if kind == "dict" else rows
+
+
+@dataclass
+class LogState:
+    """What the store has of one log: its generation, rows written, kind, level-tagged chunks (first, count,
+    level) of the current generation, and the identity of the container written from."""
+
+    generation: int
+    written: int
+    kind: str
+    chunks: list[tuple[int, int, int]] | None = field(default_factory=list)  # None: go on in a new generation
+    owner: int | None = None
+
+
+@dataclass(frozen=True)
+class Loaded:
+    """A checkpoint read back: its id, session, creation time, counts, small part and logs (cold ones lazy)."""
+
+    checkpoint: int
+    session: int
+    created: float
+    keyframes: int
+    frames: int
+    small: dict[str, Any]
+    logs: dict[str, Any]
+
+
+class MapStore:
+    """The ``map.db`` of a state directory (see the module docstring); single writer, this process."""
+
+    def __init__(self, path: Path, robot: str, cold: frozenset[str] = frozenset(), keep: int = 3):
+        if keep < 2:
+            raise ValueError("keep at least two checkpoints, so a bad newest one has a fallback")
+        self.path = Path(path)
+        self.keep = keep
+        self.robot = robot
+        self.cold = cold
+        existed = self.path.exists() and self.path.stat().st_size > 0
+        try:
+            self.db = sqlite3.connect(self.path, isolation_level=None, check_same_thread=False)
+            self.db.execute("PRAGMA journal_mode=WAL")
+            self.db.execute("PRAGMA synchronous=NORMAL")
+            self._migrate(existed)
+        except sqlite3.DatabaseError as exc:
+            raise StoreError(f"{self.path} is not a usable map store: {exc}") from exc
+        self.logs: dict[str, LogState] = {}
+        self.session = 0
+        self.skipped: list[tuple[str, str]] = []
+        self.bytes_written = 0
+        self._excluded: set[int] = set()  # checkpoints that read back but could not be restored
+        self._replaced: set[tuple[str, int]] = set()  # (log, generation) replaced, deleted once unused
+
+    # ------------------------------------------------------------ schema
+
+    def _meta(self, key: str) -> str | None:
+        row = self.db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return None if row is None else str(row[0])
+
+    def _migrate(self, existed: bool) -> None:
+        """Create the schema, or bring an older store up to ``SCHEMA_VERSION``; refuse a newer or foreign one."""
+        has_meta = self.db.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name='meta'").fetchone()
+        version = int(self._meta("schema_version") or 0) if has_meta else 0
+        if existed and not has_meta:
+            raise StoreError(f"{self.path} is not an objslam map store (no meta table)")
+        if version > SCHEMA_VERSION:
+            raise StoreError(
+                f"{self.path} has schema version {version}, newer than this release's {SCHEMA_VERSION}: "
+                "upgrade objslam, or give this run another --state-dir"
+            )
+        robot = self._meta("robot") if has_meta else None
+        if robot is not None and robot != self.robot:
+            raise StoreError(
+                f"{self.path} holds the map of robot {robot!r}, not {self.robot!r}: give each robot its own --state-dir"
+            )
+        with self.transaction():
+            while 0 < version < SCHEMA_VERSION:
+                MIGRATIONS[version](self.db)
+                version += 1
+                log.info("map store %s migrated to schema version %d", self.path, version)
+            if version == 0:
+                for statement in filter(str.strip, SCHEMA.split(";")):
+                    self.db.execute(statement)
+            self.db.execute("INSERT OR REPLACE INTO meta VALUES ('schema_version', ?)", (str(SCHEMA_VERSION),))
+            self.db.execute("INSERT OR IGNORE INTO meta VALUES ('robot', ?)", (self.robot,))
+            self.db.execute("INSERT OR IGNORE INTO meta VALUES ('created', ?)", (str(time.time()),))
+
+    def transaction(self) -> _Transaction:
+        return _Transaction(self.db)
+
+    def start_session(self, info: dict[str, Any]) -> int:
+        """A new session of this map (one per start of the service); its id."""
+        with self.transaction():
+            cur = self.db.execute(
+                "INSERT INTO sessions (started, robot, info) VALUES (?, ?, ?)",
+                (time.time(), self.robot, json.dumps(info)),
+            )
+        self.session = int(cur.lastrowid or 0)
+        return self.session
+
+    def sessions(self) -> list[dict[str, Any]]:
+        rows = self.db.execute("SELECT id, started, info FROM sessions ORDER BY id").fetchall()
+        return [{"id": i, "started": s, **json.loads(info)} for i, s, info in rows]
+
+    # ------------------------------------------------------------ writing
+
+    def checkpoint(self, small: dict[str, Any], logs: dict[str, Any], keyframes: int, frames: int) -> int:
+        """Write the rows of ``logs`` new since the last checkpoint and ``small``, in one transaction; its id.
+
+        ``logs`` are the live containers (``slam.parts``): only their new rows are encoded, so the work is the
+        new rows', not the map's. Raises OSError / sqlite3.Error when the disk refuses (nothing is written)."""
+        t0 = time.perf_counter()
+        before = {name: LogState(**vars(s)) for name, s in self.logs.items()}
+        try:
+            with self.transaction():
+                lengths = {name: self._write_log(name, rows) for name, rows in logs.items()}
+                blob, sha = _blob(small)
+                cur = self.db.execute(
+                    "INSERT INTO checkpoints (session, created, keyframes, frames, logs, small, sha) "
+                    "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                    (self.session, time.time(), keyframes, frames, json.dumps(lengths), blob, sha),
+                )
+                self.bytes_written += len(blob)
+                self._prune()
+        except BaseException:
+            self.logs = before  # the rolled-back rows are written again next time
+            raise
+        log.debug("checkpoint: %d keyframes in %.1f ms", keyframes, (time.perf_counter() - t0) * 1e3)
+        return int(cur.lastrowid or 0)
+
+    def _write_log(self, name: str, rows: Any) -> tuple[int, int, str]:
+        state = self.logs.get(name)
+        n, kind = len(rows), kind_of(rows)
+        if state is None or state.chunks is None or state.owner not in (None, token(rows)) or n < state.written:
+            if state is not None:  # a new container (or the log of an older checkpoint): written whole
+                self._replaced.add((name, state.generation))
+            generation = 0 if state is None else self._next_generation(name, state.generation)
+            state = self.logs[name] = LogState(generation, 0, kind)
+        state.owner = token(rows)
+        if n > state.written:
+            if name in self.cold:
+                self._write_cold(name, state, tail(rows, state.written, n))
+            else:
+                self._write_chunk(name, state, rows, state.written, n, 0)
+                self._merge(name, state, rows)
+            state.written = n
+        return state.generation, n, kind
+
+    def _next_generation(self, name: str, generation: int) -> int:
+        """A generation of ``name`` above every stored one (an older checkpoint's may have been continued)."""
+        table = "cold" if name in self.cold else "chunks"
+        row = self.db.execute(f"SELECT MAX(generation) FROM {table} WHERE log = ?", (name,)).fetchone()
+        return max(generation, -1 if row[0] is None else int(row[0])) + 1
+
+    def _write_chunk(self, name: str, state: LogState, rows: Any, first: int, stop: int, level: int) -> None:
+        data, sha = _blob(tail(rows, first, stop))
+        self.db.execute(
+            "INSERT OR REPLACE INTO chunks VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (name, state.generation, first, stop - first, level, data, sha),
+        )
+        assert state.chunks is not None
+        state.chunks.append((first, stop - first, level))
+        self.bytes_written += len(data)
+
+    def _merge(self, name: str, state: LogState, rows: Any) -> None:
+        """Merge the last ``FANOUT`` chunks when they are of one level (repeatedly: a merge can complete one)."""
+        chunks = state.chunks
+        assert chunks is not None  # a writer's own log (``_write_log`` starts a new generation otherwise)
+        while len(chunks) >= FANOUT and len({c[2] for c in chunks[-FANOUT:]}) == 1:
+            merged = chunks[-FANOUT:]
+            del chunks[-FANOUT:]
+            first, stop = merged[0][0], merged[-1][0] + merged[-1][1]
+            self.db.execute(
+                "DELETE FROM chunks WHERE log = ? AND generation = ? AND first >= ? AND first < ?",
+                (name, state.generation, first, stop),
+            )
+            self._write_chunk(name, state, rows, first, stop, merged[0][2] + 1)
+
+    def _write_cold(self, name: str, state: LogState, rows: list[Any]) -> None:
+        for i, row in enumerate(rows, state.written):
+            data, sha = _blob(row)
+            self.db.execute(
+                "INSERT OR REPLACE INTO cold VALUES (?, ?, ?, ?, ?)", (name, state.generation, i, data, sha)
+            )
+            self.bytes_written += len(data)
+
+    def _prune(self) -> None:
+        """Keep the newest ``keep`` checkpoints; drop the replaced log generations none of them uses."""
+        ids = [r[0] for r in self.db.execute("SELECT id FROM checkpoints ORDER BY id DESC").fetchall()]
+        if len(ids) <= self.keep:
+            return
+        self.db.execute("DELETE FROM checkpoints WHERE id <= ?", (ids[self.keep],))
+        if not self._replaced:
+            return
+        used = {(name, s.generation) for name, s in self.logs.items()}
+        for (text,) in self.db.execute("SELECT logs FROM checkpoints").fetchall():
+            used.update((name, g) for name, (g, _n, _k) in json.loads(text).items())
+        for name, generation in sorted(self._replaced - used):
+            table = "cold" if name in self.cold else "chunks"
+            self.db.execute(f"DELETE FROM {table} WHERE log = ? AND generation = ?", (name, generation))
+        self._replaced &= used
+
+    # ------------------------------------------------------------ reading
+
+    def checkpoints(self) -> list[tuple[int, int, float, int, int]]:
+        """(id, session, created, keyframes, frames) of the stored checkpoints, newest first."""
+        rows = self.db.execute("SELECT id, session, created, keyframes, frames FROM checkpoints ORDER BY id DESC")
+        return [tuple(r) for r in rows.fetchall()]
+
+    def load(self) -> Loaded | None:
+        """The newest checkpoint that reads back whole, its logs' rows verified; None when there is none.
+        Each newer one that fails is logged and listed in ``skipped`` with its reason."""
+        try:
+            ids = [r[0] for r in self.checkpoints()]
+        except sqlite3.DatabaseError as exc:
+            raise StoreError(f"{self.path}: cannot list checkpoints: {exc}") from exc
+        for checkpoint in ids:
+            if checkpoint in self._excluded:
+                continue
+            try:
+                return self._load(checkpoint)
+            except (StoreError, sqlite3.DatabaseError) as exc:
+                log.error("map store checkpoint %d is unusable (%s); trying the one before", checkpoint, exc)
+                self.skipped.append((f"checkpoint-{checkpoint}", str(exc)))
+        return None
+
+    def _load(self, checkpoint: int) -> Loaded:
+        row = self.db.execute(
+            "SELECT session, created, keyframes, frames, logs, small, sha FROM checkpoints WHERE id = ?", (checkpoint,)
+        ).fetchone()
+        session, created, keyframes, frames, text, blob, sha = row
+        small = _unblob(blob, sha, f"checkpoint {checkpoint}")
+        logs, states = {}, {}
+        for name, (generation, length, kind) in json.loads(text).items():
+            if name in self.cold:
+                logs[name] = self._read_cold(name, generation, length, kind)
+                states[name] = LogState(generation, length, kind)
+            else:
+                logs[name], chunks = self._read_chunks(name, generation, length, kind)
+                states[name] = LogState(generation, length, kind, chunks)
+        self.logs = states
+        return Loaded(checkpoint, session, created, keyframes, frames, small, logs)
+
+    def _read_chunks(
+        self, name: str, generation: int, length: int, kind: str
+    ) -> tuple[Any, list[tuple[int, int, int]] | None]:
+        rows = self.db.execute(
+            "SELECT first, count, level, data, sha FROM chunks WHERE log = ? AND generation = ? AND first < ? "
+            "ORDER BY first",
+            (name, generation, max(length, 1)),
+        ).fetchall()
+        pieces, chunks, at = [], [], 0
+        for first, count, level, data, sha in rows:
+            if first != at:
+                raise StoreError(f"log {name}: rows {at}-{first} missing")
+            pieces.append(_unblob(data, sha, f"log {name} rows {first}+{count}"))
+            chunks.append((first, count, level))
+            at = first + count
+        if at < length:
+            raise StoreError(f"log {name}: {length} rows expected, {at} stored")
+        # rows of a later checkpoint (this older one was loaded): the writer goes on in a new generation
+        return join(kind, pieces, length), (chunks if at == length else None)
+
+    def _read_cold(self, name: str, generation: int, length: int, kind: str) -> Any:
+        pieces = [[row] for row in self.cold_rows(name, generation, 0, length)]
+        return join(kind, pieces, length)
+
+    def cold_rows(self, name: str, generation: int, start: int, stop: int) -> Iterator[Any]:
+        """Rows ``[start, stop)`` of a cold log, verified."""
+        rows = self.db.execute(
+            "SELECT idx, data, sha FROM cold WHERE log = ? AND generation = ? AND idx >= ? AND idx < ? ORDER BY idx",
+            (name, generation, start, stop),
+        )
+        at = start
+        for idx, data, sha in rows:
+            if idx != at:
+                raise StoreError(f"log {name}: row {at} missing")
+            yield _unblob(data, sha, f"log {name} row {idx}")
+            at += 1
+        if at < stop:
+            raise StoreError(f"log {name}: {stop} rows expected, {at} stored")
+
+    def forget(self, checkpoint: int) -> None:
+        """Pass over ``checkpoint`` in ``load`` from now on (it read back but could not be restored)."""
+        self._excluded.add(checkpoint)
+
+    def close(self) -> None:
+        self.db.close()
+
+
+class _Transaction:
+    """``with store.transaction():`` BEGIN IMMEDIATE ... COMMIT, or ROLLBACK on an exception."""
+
+    def __init__(self, db: sqlite3.Connection):
+        self.db = db
+
+    def __enter__(self) -> None:
+        self.db.execute("BEGIN IMMEDIATE")
+
+    def __exit__(self, exc_type: Any, *_: Any) -> None:
+        self.db.execute("ROLLBACK" if exc_type is not None else "COMMIT")
