@@ -7,17 +7,16 @@ import math
 import numpy as np
 
 from graph.geometry import motion_magnitude, relative
+from loops.archive import KeyframeArchive
 from loops.place_recognition import PlaceIndex
 from loops.records import Candidate, KeyframeEntry, Source
 from loops.settings import LoopSettings
 
 
-def nearby(
-    entry: KeyframeEntry, keyframes: dict[int, KeyframeEntry], poses: np.ndarray, settings: LoopSettings
-) -> list[int]:
+def nearby(entry: KeyframeEntry, keyframes: KeyframeArchive, poses: np.ndarray, settings: LoopSettings) -> list[int]:
     """Old keyframes whose estimate (in ``poses``) lies near the new one's (geometric candidates)."""
     c = settings
-    old = [k for k, e in keyframes.items() if e.timestamp <= entry.timestamp - c.min_gap_s]
+    old = [k for k, t in keyframes.timestamps() if t <= entry.timestamp - c.min_gap_s]
     if not old or entry.index >= len(poses):
         return []
     here = poses[entry.index]
@@ -36,7 +35,7 @@ def candidates(
     entry: KeyframeEntry,
     descriptor: np.ndarray,
     proposed: list[Candidate],
-    keyframes: dict[int, KeyframeEntry],
+    keyframes: KeyframeArchive,
     places: PlaceIndex,
     poses: np.ndarray | None,
     settings: LoopSettings,

@@ -17,6 +17,7 @@ import numpy as np
 
 from graph.interface import Graph
 from loops.acceptance import AcceptedLoop, LoopAcceptance
+from loops.archive import ColdLog, KeyframeArchive
 from loops.candidates import candidates
 from loops.place_recognition import PlaceIndex, global_descriptor
 from loops.records import Candidate, KeyframeEntry, LoopRecord, Verified
@@ -37,7 +38,7 @@ class LoopCloser:
         self.settings = settings or LoopSettings()
         self.estimator = estimator
         self.places = PlaceIndex()
-        self.keyframes: dict[int, KeyframeEntry] = {}
+        self.keyframes = KeyframeArchive()
         self.acceptance = LoopAcceptance(graph, self.settings)
         s = self.settings
         self.verify_config = estimator.config.model_copy(
@@ -74,7 +75,8 @@ class LoopCloser:
             "accepted": dict(self.accepted),
             "record_fixes": {i: r for i, r in enumerate(self.records) if r.factor is not None},
         }
-        return small, {"records": self.records, "keyframes": self.keyframes, **self.places.logs()}
+        logs = {"records": self.records, "keyframe_stubs": self.keyframes.stubs, **self.places.logs()}
+        return small, {**logs, "keyframe_features": self.keyframes.features}
 
     def restore(self, state: dict[str, Any]) -> None:
         """Continue from ``state`` (also as release 0.1.0 saved it: records as dicts, loops as tuples)."""
@@ -84,7 +86,8 @@ class LoopCloser:
             f: v if isinstance(v, AcceptedLoop) else AcceptedLoop(*v) for f, v in state["accepted"].items()
         }
         self.places.restore(state["places"])
-        self.keyframes = {e.index: e for e in state["keyframes"]}
+        saved = state["keyframes"]
+        self.keyframes = saved if isinstance(saved, KeyframeArchive) else KeyframeArchive.of_entries(saved)
 
     def add_keyframe(
         self, entry: KeyframeEntry, rgb: np.ndarray, proposed: tuple[Candidate, ...] = ()
@@ -112,7 +115,7 @@ class LoopCloser:
                 break  # one loop per keyframe is enough; the graph's gate decides on this one in ``accept``
         self.places.add(entry.index, entry.timestamp, descriptor)
         features = entry.features.with_depth() if entry.features is not None else None  # only the 3D side kept
-        self.keyframes[entry.index] = replace(entry, features=features)
+        self.keyframes.add(replace(entry, features=features))
         return verified
 
     def relocalize(
@@ -142,15 +145,16 @@ class LoopCloser:
         return self.acceptance.accept(verified)
 
 
-def joined(small: dict[str, Any], logs: dict[str, Any]) -> dict[str, Any]:
-    """``LoopCloser.state()`` of its parts (logs as sequences; the keyframes as a mapping or as entries)."""
+def joined(small: dict[str, Any], logs: dict[str, Any], materialize: bool = True) -> dict[str, Any]:
+    """``LoopCloser.state()`` of its parts (logs as sequences); ``materialize``: the keyframes as a list of
+    entries with their features (plain data), else as a ``KeyframeArchive`` that reads spilled ones on demand."""
     records = list(logs["records"])
     for i, record in small["record_fixes"].items():
         records[i] = record
-    keyframes = logs["keyframes"]
+    keyframes = KeyframeArchive(logs["keyframe_stubs"], ColdLog.of(logs["keyframe_features"]))
     return {
         "records": records,
         "accepted": small["accepted"],
         "places": PlaceIndex.joined(logs),
-        "keyframes": list(keyframes.values() if isinstance(keyframes, dict) else keyframes),
+        "keyframes": keyframes.entries() if materialize else keyframes,
     }

@@ -193,4 +193,4 @@ def _size(path: Path) -> int:
 def service_state(small: dict[str, Any], logs: dict[str, Any]) -> dict[str, Any]:
     """A checkpoint's parts as the state ``ServiceNode._restore`` reads: the core's (``small["pipeline"]`` and
     the logs) in ``slam.snapshot.core_state``'s format, the service's counters as they are."""
-    return {**small, "pipeline": assemble(CoreParts(small["pipeline"], logs))}
+    return {**small, "pipeline": assemble(CoreParts(small["pipeline"], logs), materialize=False)}

@@ -23,6 +23,7 @@ import hashlib
 import json
 import logging
 import sqlite3
+import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -32,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from loops.archive import ColdLog
 from service.persistence import SnapshotError, decode, encode
 
 log = logging.getLogger(__name__)
@@ -148,6 +150,8 @@ class MapStore:
         self.session = 0
         self.skipped: list[tuple[str, str]] = []
         self.bytes_written = 0
+        self._reader = sqlite3.connect(self.path, check_same_thread=False)  # cold rows, from any thread
+        self._read_lock = threading.Lock()
         self._excluded: set[int] = set()  # checkpoints that read back but could not be restored
         self._replaced: set[tuple[str, int]] = set()  # (log, generation) replaced, deleted once unused
 
@@ -225,6 +229,10 @@ class MapStore:
         except BaseException:
             self.logs = before  # the rolled-back rows are written again next time
             raise
+        for name in self.cold & logs.keys():  # committed: the store holds them, RAM need not
+            rows = logs[name]
+            if isinstance(rows, ColdLog):
+                rows.spill(len(rows), self.loader(name, self.logs[name].generation))
         log.debug("checkpoint: %d keyframes in %.1f ms", keyframes, (time.perf_counter() - t0) * 1e3)
         return int(cur.lastrowid or 0)
 
@@ -332,8 +340,8 @@ class MapStore:
         small = _unblob(blob, sha, f"checkpoint {checkpoint}")
         logs, states = {}, {}
         for name, (generation, length, kind) in json.loads(text).items():
-            if name in self.cold:
-                logs[name] = self._read_cold(name, generation, length, kind)
+            if name in self.cold:  # read on demand
+                logs[name] = ColdLog(length=length, loader=self.loader(name, generation))
                 states[name] = LogState(generation, length, kind)
             else:
                 logs[name], chunks = self._read_chunks(name, generation, length, kind)
@@ -361,13 +369,20 @@ class MapStore:
         # rows of a later checkpoint (this older one was loaded): the writer goes on in a new generation
         return join(kind, pieces, length), (chunks if at == length else None)
 
-    def _read_cold(self, name: str, generation: int, length: int, kind: str) -> Any:
-        pieces = [[row] for row in self.cold_rows(name, generation, 0, length)]
-        return join(kind, pieces, length)
+    def loader(self, name: str, generation: int) -> Callable[[int], Any]:
+        """Reads row ``i`` of a cold log (on its own connection: safe from any thread, beside a checkpoint)."""
 
-    def cold_rows(self, name: str, generation: int, start: int, stop: int) -> Iterator[Any]:
+        def load(i: int) -> Any:
+            with self._read_lock:
+                return next(self.cold_rows(name, generation, i, i + 1, self._reader))
+
+        return load
+
+    def cold_rows(
+        self, name: str, generation: int, start: int, stop: int, db: sqlite3.Connection | None = None
+    ) -> Iterator[Any]:
         """Rows ``[start, stop)`` of a cold log, verified."""
-        rows = self.db.execute(
+        rows = (db or self.db).execute(
             "SELECT idx, data, sha FROM cold WHERE log = ? AND generation = ? AND idx >= ? AND idx < ? ORDER BY idx",
             (name, generation, start, stop),
         )
@@ -385,6 +400,7 @@ class MapStore:
         self._excluded.add(checkpoint)
 
     def close(self) -> None:
+        self._reader.close()
         self.db.close()
 
 

@@ -133,8 +133,6 @@ class ServiceNode:
             self._discard_queued()
             self.snapshot(final=True)
             self.core.close()
-            if self.persistence is not None:
-                self.persistence.close()
         for entity in reversed(self._entities):
             self._undeclare(entity)
         self._entities.clear()

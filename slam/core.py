@@ -28,6 +28,7 @@ import numpy as np
 from graph.object_landmarks import ObjectLandmarks
 from graph.trajectory import Trajectory
 from graph.window import WindowedGraph
+from loops.archive import ColdLog
 from loops.closer import LoopCloser
 from loops.records import Candidate, KeyframeEntry, LoopRecord, Source
 from perception.frame import CameraModel, Detection, Frame, FrameRejected, Reason
@@ -97,7 +98,7 @@ class SlamCore:
         self.tracking: Tracking | None = None
         self.records: list[FrameRecord] = []
         self.kf_odometry: list[np.ndarray] = []
-        self.kf_points: list[np.ndarray] = []  # sparse depth samples per keyframe, camera frame, float32
+        self.kf_points: ColdLog[np.ndarray] = ColdLog()  # sparse depth samples per keyframe, camera frame, float32
         self.pending: deque[dict[str, Handle]] = deque()  # per keyframe, oldest first: its unapplied stages
         self.objects_view: list = []  # the objects as of the last applied mapping (read by object_list)
         self.object_poses: list[np.ndarray] = []  # per keyframe: the pose its object observations were placed with

@@ -23,11 +23,12 @@ from typing import Any
 import numpy as np
 
 from graph.window_state import joined as graph_joined
+from loops.archive import ColdLog
 from loops.closer import joined as loops_joined
 from perception.object_map import joined as objects_joined
 from slam.core import SlamCore
 
-COLD = frozenset({"loops.keyframes", "kf_points"})
+COLD = frozenset({"loops.keyframe_features", "kf_points"})
 """Logs needed only on demand: one row per keyframe in a store, never all in RAM."""
 
 
@@ -96,8 +97,9 @@ def _poses(rows: Any) -> np.ndarray:
     return np.array(list(rows), float).reshape(-1, 4, 4)
 
 
-def assemble(parts: CoreParts) -> dict[str, Any]:
-    """``core_state``'s format of ``parts`` (logs live or read back: lists, arrays or dicts)."""
+def assemble(parts: CoreParts, materialize: bool = True) -> dict[str, Any]:
+    """``core_state``'s format of ``parts`` (logs live or read back: lists, arrays or dicts). ``materialize``:
+    plain data throughout, the cold logs read whole; else they stay ``ColdLog``s, read on demand."""
     small, logs = parts.small, parts.logs
     r = list(logs["records"])
     state = {
@@ -113,7 +115,7 @@ def assemble(parts: CoreParts) -> dict[str, Any]:
             "posed": np.array([x.posed for x in r], bool),
         },
         "kf_odometry": _poses(logs["kf_odometry"]),
-        "kf_points": list(logs["kf_points"]),
+        "kf_points": list(logs["kf_points"]) if materialize else ColdLog.of(logs["kf_points"]),
         "segments": {**small["segments"], "keyframe_segment": list(logs["segments.keyframe_segment"])},
         "keyframe_detections": dict(logs["keyframe_detections"]),
         "object_poses": _poses(logs["object_poses"]),
@@ -121,5 +123,5 @@ def assemble(parts: CoreParts) -> dict[str, Any]:
     if small["objects"] is not None:
         state["objects"] = objects_joined(small["objects"], _unprefixed("objects", logs))
     if small["loops"] is not None:
-        state["loops"] = loops_joined(small["loops"], _unprefixed("loops", logs))
+        state["loops"] = loops_joined(small["loops"], _unprefixed("loops", logs), materialize)
     return state

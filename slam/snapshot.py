@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from graph.window import WindowedGraph
+from loops.archive import ColdLog
 from loops.records import LoopRecord, Verified
 from slam.build import build_core
 from slam.core import SlamCore
@@ -72,7 +73,7 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
     ]
     core.clock.restore(state.get("clock", {}), core.records[-1].timestamp if core.records else None)
     core.kf_odometry = list(state["kf_odometry"])
-    core.kf_points = list(state.get("kf_points", []))
+    core.kf_points = ColdLog.of(state.get("kf_points", []))
     core.tracking_lost = state["tracking_lost"]
     if "segments" in state:
         core.segments = Segments.from_state(state["segments"])
