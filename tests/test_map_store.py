@@ -1,0 +1,243 @@
+"""The map store: exact resume through it, RAM that holds only the newest cold rows, SIGKILL at any moment,
+corrupt and truncated files, a newer schema, and a state directory of the snapshot release migrated."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from loops.archive import RESIDENT, ColdLog
+from service.config import load_settings
+from service.map_persistence import Persistence, service_state
+from service.map_store import SCHEMA_VERSION, MapStore, StoreError
+from service.persistence import SnapshotStore, encode
+from slam.build import build_core
+from slam.parts import COLD, CoreParts, assemble, core_parts
+from slam.snapshot import core_state, restore_core
+from sources import open_dataset
+
+SPEC = "synthetic:room?seed=0&frames=160&fps=10&width=320&height=240"
+CUT = 110  # after the first loop closures, before the last ones
+
+
+@pytest.fixture(scope="module")
+def frames():
+    ds = open_dataset(SPEC)
+    return [ds.frame(i) for i in range(len(ds))]
+
+
+@pytest.fixture(scope="module")
+def reference(frames):
+    """Trajectory after each frame of an uninterrupted run, and its map points at the end."""
+    core = build_core(load_settings())
+    after = []
+    for frame in frames:
+        core.step(frame)
+        after.append(core.trajectory().poses)
+    return {"after": after, "cloud": core.cloud()}
+
+
+def _checkpointed(frames, path: Path, stop: int):
+    """A core fed ``frames[:stop]`` with a checkpoint after every keyframe (and at the end), as serve does."""
+    settings = load_settings()
+    core, store = build_core(settings), MapStore(path, settings.robot, COLD)
+    written = 0
+    for i, frame in enumerate(frames[:stop]):
+        core.step(frame)
+        if core.graph.num_keyframes > written or i + 1 == stop:
+            written = core.graph.num_keyframes
+            parts = core_parts(core)
+            store.checkpoint(parts.small, parts.logs, written, i + 1)
+    return core, store
+
+
+def test_a_core_resumed_from_the_store_continues_exactly_and_reads_spilled_features_back(tmp_path, frames, reference):
+    core, store = _checkpointed(frames, tmp_path / "map.db", CUT)
+    assert core.kf_points.resident == RESIDENT < len(core.kf_points)  # the rest is in the store only
+    assert core.loops.keyframes.features.resident == RESIDENT < len(core.loops.keyframes)
+    store.close()
+
+    reader = MapStore(tmp_path / "map.db", "robot1", COLD)
+    loaded = reader.load()
+    assert loaded is not None and loaded.frames == CUT and reader.skipped == []
+    features = loaded.logs["loops.keyframe_features"]
+    assert isinstance(features, ColdLog) and features.resident == 0  # nothing of it read on restart
+    restored = restore_core(load_settings(), assemble(CoreParts(loaded.small, loaded.logs), materialize=False))
+    assert np.array_equal(restored.trajectory().poses, reference["after"][CUT - 1])
+    for frame in frames[CUT:]:
+        restored.step(frame)
+    assert np.array_equal(restored.trajectory().poses, reference["after"][-1])  # loops to old keyframes read them
+    assert restored.loops.keyframes.features.loads > 0
+    assert np.array_equal(restored.cloud(), reference["cloud"])  # map points of every keyframe, read back
+
+
+def test_checkpoint_work_follows_the_new_rows_not_the_map(tmp_path, frames):
+    """Each log is written once: the rows stored equal the rows the core holds, and a checkpoint with nothing
+    new writes only its small part."""
+    core, store = _checkpointed(frames, tmp_path / "map.db", 80)
+    for name, rows in core_parts(core).logs.items():
+        state = store.logs[name]
+        assert state.written == len(rows), name
+    rows = store.db.execute("SELECT log, SUM(count) FROM chunks GROUP BY log").fetchall()
+    stored = dict(rows)
+    assert stored["records"] == len(core.records) and stored["graph.factors"] == len(core.graph.factors)
+    before = store.bytes_written
+    parts = core_parts(core)
+    store.checkpoint(parts.small, parts.logs, core.graph.num_keyframes, 80)
+    small = len(b"".join(encode(parts.small)))
+    assert store.bytes_written - before == small
+
+
+_KILLED_WRITER = """
+import sys
+from service.config import load_settings
+from service.map_store import MapStore
+from slam.build import build_core
+from slam.parts import COLD, core_parts
+from sources import open_dataset
+settings = load_settings()
+ds = open_dataset(sys.argv[2])
+core, store = build_core(settings), MapStore(sys.argv[1], settings.robot, COLD)
+loaded = store.load()
+start = 0 if loaded is None else loaded.frames
+if loaded is not None:
+    from service.map_persistence import service_state
+    from slam.parts import CoreParts, assemble
+    from slam.snapshot import restore_core
+    core = restore_core(settings, assemble(CoreParts(loaded.small, loaded.logs), materialize=False))
+written = core.graph.num_keyframes
+for i in range(start, len(ds)):
+    core.step(ds.frame(i))
+    if core.graph.num_keyframes > written:
+        written = core.graph.num_keyframes
+        parts = core_parts(core)
+        store.checkpoint(parts.small, parts.logs, written, i + 1)
+        print(written, i + 1, flush=True)
+"""
+
+
+def test_sigkill_at_random_moments_loses_at_most_the_last_keyframe_and_the_store_verifies(tmp_path):
+    """A writer killed five times at random moments (mid-transaction most likely: it writes all the time),
+    restarted on its store each time: every restart finds the newest committed checkpoint."""
+    path, rng = tmp_path / "map.db", np.random.default_rng(7)
+    spec = "synthetic:room?seed=1&frames=400&fps=10&width=160&height=120"
+    committed = (0, 0)
+    for _ in range(5):
+        proc = subprocess.Popen(
+            [sys.executable, "-c", _KILLED_WRITER, str(path), spec],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.DEVNULL,
+            text=True,
+            env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+        lines = []
+        deadline = time.monotonic() + 120
+        target = len(lines) + int(rng.integers(3, 12))
+        assert proc.stdout is not None
+        while len(lines) < target and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+        time.sleep(float(rng.uniform(0.0, 0.2)))
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        lines += proc.stdout.readlines()  # printed (after their commit) before the kill
+        assert lines, "the writer wrote no checkpoint"
+        seen = tuple(int(x) for x in lines[-1].split())  # committed before it was printed
+        assert seen[0] > committed[0]
+        db = sqlite3.connect(path)
+        assert db.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
+        db.close()
+        loaded = MapStore(path, "robot1", COLD).load()
+        assert loaded is not None
+        assert seen[0] <= loaded.keyframes <= seen[0] + 1  # at most the one being written when killed is lost
+        committed = (loaded.keyframes, loaded.frames)
+
+
+def test_a_truncated_store_is_moved_aside_with_a_clear_error_and_a_new_map_begins(tmp_path, frames, caplog):
+    _, store = _checkpointed(frames, tmp_path / "map.db", 40)
+    store.db.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+    store.close()
+    data = (tmp_path / "map.db").read_bytes()
+    (tmp_path / "map.db").write_bytes(data[: len(data) // 3])  # pages lost from the middle on
+
+    persistence = Persistence(tmp_path, "robot1")
+    restored: list = []
+    assert not persistence.resume(restored.append, service_state)
+    skipped = persistence.status()["skipped_snapshots"]
+    assert skipped and any("malformed" in s["reason"] or "rows" in s["reason"] for s in skipped), skipped
+    assert restored == []
+    assert persistence.save({"x": 1}, {}, 1, 1)  # a usable store again
+
+
+def _records_lengths(store: MapStore) -> list[int]:
+    rows = store.db.execute("SELECT logs FROM checkpoints ORDER BY id DESC").fetchall()
+    return [json.loads(text)["records"][1] for (text,) in rows]
+
+
+def test_a_flipped_byte_in_a_log_falls_back_to_a_checkpoint_that_does_not_need_it(tmp_path, frames):
+    core, store = _checkpointed(frames, tmp_path / "map.db", 60)
+    for i in range(60, 80):  # until the newest records chunk is one only the newest checkpoint needs
+        newest = store.db.execute("SELECT MAX(first) FROM chunks WHERE log = 'records'").fetchone()[0]
+        if _records_lengths(store)[1] <= newest:
+            break
+        core.step(frames[i])
+        parts = core_parts(core)
+        store.checkpoint(parts.small, parts.logs, core.graph.num_keyframes, i + 1)
+    lengths = _records_lengths(store)
+    assert lengths[1] <= newest < lengths[0]
+    key = ("records", newest)
+    data = bytearray(store.db.execute("SELECT data FROM chunks WHERE log = ? AND first = ?", key).fetchone()[0])
+    data[len(data) // 2] ^= 0x01
+    store.db.execute("UPDATE chunks SET data = ? WHERE log = ? AND first = ?", (bytes(data), *key))
+    store.close()
+    reader = MapStore(tmp_path / "map.db", "robot1", COLD)
+    loaded = reader.load()
+    assert len(reader.skipped) == 1 and "checksum mismatch" in reader.skipped[0][1], reader.skipped
+    assert loaded is not None and len(loaded.logs["records"]) == lengths[1]
+
+
+def test_a_store_of_a_newer_schema_is_refused_with_what_to_do(tmp_path):
+    MapStore(tmp_path / "map.db", "robot1").close()
+    db = sqlite3.connect(tmp_path / "map.db")
+    db.execute("UPDATE meta SET value = ? WHERE key = 'schema_version'", (str(SCHEMA_VERSION + 1),))
+    db.commit()
+    db.close()
+    with pytest.raises(StoreError, match="newer than this release"):
+        MapStore(tmp_path / "map.db", "robot1")
+
+
+def test_a_state_directory_of_the_snapshot_release_is_migrated_into_the_store(tmp_path, frames, reference):
+    settings = load_settings()
+    core = build_core(settings)
+    for frame in frames[:CUT]:
+        core.step(frame)
+    old = {"robot": "robot1", "created": 0.0, "keyframes": core.graph.num_keyframes, "frames_processed": CUT}
+    SnapshotStore(tmp_path / "snapshots").write(encode({**old, "state": {"pipeline": core_state(core)}}))
+
+    def restore_into(box):
+        return lambda state: box.append(restore_core(settings, state["pipeline"]))
+
+    box: list = []
+    persistence = Persistence(tmp_path, "robot1")
+    assert persistence.resume(restore_into(box), service_state)
+    assert persistence.status()["resumed_from"]["file"].startswith("snapshots/snapshot-")
+    migrated = box[0]
+    parts = core_parts(migrated)
+    assert persistence.save({"pipeline": parts.small}, parts.logs, migrated.graph.num_keyframes, CUT)  # all, once
+
+    again: list = []
+    persistence = Persistence(tmp_path, "robot1")
+    assert persistence.resume(restore_into(again), service_state)
+    assert persistence.status()["resumed_from"]["file"].startswith("map.db#checkpoint-")
+    assert np.array_equal(again[0].trajectory().poses, reference["after"][CUT - 1])
