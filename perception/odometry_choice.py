@@ -38,6 +38,7 @@ class PerFrameOdometry:
         self.external = ExternalOdometry(policy)
         self._make_visual = visual
         self.visual: VisualOdometry | None = None
+        self._restart = False  # the next frame restarts tracking (``new_session``)
         self.last: Source | None = None  # the source of the last posed frame
         self._offset = np.eye(4)  # map pose = offset @ odometry, while odometry frames follow each other
         self._anchor: np.ndarray | None = None  # the odometry reading of the last frame, when it carried one
@@ -65,18 +66,26 @@ class PerFrameOdometry:
             if self.policy.implausible(self._anchor, frame.odometry, dt):
                 raise FrameRejected(Reason.ODOMETRY_JUMP, "odometry jumped implausibly far since the last frame")
 
+    def new_session(self) -> None:
+        """The next frame may be anywhere (a new session of the map): it restarts visual tracking as a lost
+        keyframe, which the core relocalizes against the stored keyframes (no effect without visual odometry)."""
+        self._restart = self.visual is not None or self._make_visual is not None
+
     def track(self, frame: Frame) -> Step:
-        if self.chains(frame):
+        restart, self._restart = self._restart, False
+        source: Source = "visual"
+        if restart:
+            step = self._visual().restart(frame, self._last_pose)
+        elif self.chains(frame):
             assert frame.odometry is not None
             if self.last != "odometry":
                 self.external.continue_from(self._kf_pose, self._since)
             step = self.external.track_pose(self._offset @ frame.odometry)
-            source: Source = "odometry"
+            source = "odometry"
             if self.visual is not None:  # ready to take over when the odometry drops out
                 self.visual.follow(frame, step.pose, step.keyframe)
         else:
             step = self._visual_step(frame)
-            source = "visual"
         if frame.odometry is not None and step.posed:
             if source == "visual":  # a chain of odometry frames may start here
                 self._offset = step.pose @ inverse(frame.odometry)
@@ -91,19 +100,26 @@ class PerFrameOdometry:
                 self._since += 1
         return step
 
-    def _visual_step(self, frame: Frame) -> Step:
+    def _visual(self) -> VisualOdometry:
         if self.visual is None:
             if self._make_visual is None:
                 raise FrameRejected(Reason.NO_ODOMETRY, "the frame carries no odometry and visual odometry is off")
             self.visual = self._make_visual()
-        if self.last is not None and not self.visual.started:  # nothing of its own to track from
-            return self.visual.restart(frame, self._last_pose)
-        return self.visual.track(frame)
+        return self.visual
+
+    def _visual_step(self, frame: Frame) -> Step:
+        visual = self._visual()
+        if self.last is not None and not visual.started:  # nothing of its own to track from
+            return visual.restart(frame, self._last_pose)
+        return visual.track(frame)
 
     def reanchor(self, pose: np.ndarray) -> None:
-        """The current keyframe's pose is ``pose`` (relocalization placed it in the map)."""
+        """The current keyframe's pose is ``pose`` (relocalization placed it in the map); a chain of the frames'
+        own odometry continues from there."""
         if self.visual is not None:
             self.visual.reanchor(pose)
+        if self._anchor is not None:
+            self._offset = pose @ inverse(self._anchor)
         self._kf_pose = self._last_pose = pose
 
     @property

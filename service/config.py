@@ -82,6 +82,9 @@ class PersistenceSettings(BaseModel):
 
     every_keyframes: int = Field(1, ge=1, description="checkpoint the map store after this many new keyframes")
     keep: int = Field(3, ge=2, description="checkpoints kept in the map store (the older ones are fallbacks)")
+    session_gap_s: float = Field(
+        2.0, gt=0, description="a resumed map's first frame this long after its last one may be anywhere: relocalized"
+    )
 
 
 class Settings(BaseSettings):

@@ -21,6 +21,7 @@ from typing import Any
 from service.config import ConfigError
 from service.map_store import SCHEMA_VERSION, MapStore, StoreError
 from service.persistence import SnapshotStore
+from slam.core import SlamCore
 from slam.parts import COLD, CoreParts, assemble
 
 log = logging.getLogger(__name__)
@@ -161,8 +162,8 @@ class Persistence:
         }
         return True
 
-    def status(self) -> dict[str, Any]:
-        """The ``persistence`` object of the status reply (docs/protocol.md)."""
+    def status(self, core: SlamCore | None = None) -> dict[str, Any]:
+        """The ``persistence`` object of the status reply (docs/protocol.md), with ``core``'s session."""
         return {
             "state_dir": str(self.directory),
             "every_keyframes": self.every_keyframes,
@@ -179,6 +180,20 @@ class Persistence:
                 "session": self.store.session,
                 "bytes": _size(self.store.path),
             },
+            "session": None if core is None else self._session(core),
+        }
+
+    def _session(self, core: SlamCore) -> dict[str, Any]:
+        """This run's session: whether it began anywhere (``first_keyframe``: its first keyframe) and, if so,
+        whether its newest keyframe is localized in the stored map (joined to keyframe 0's segment) and the
+        stored keyframe it matched last."""
+        first, newest = core.session_keyframe, core.graph.num_keyframes - 1
+        localized = first is None or (newest >= first and core.segments.tied(newest))
+        return {
+            "id": self.store.session,
+            "first_keyframe": first,
+            "localized": bool(localized),
+            "against_keyframe": core.segments.last_match if first is not None and localized else None,
         }
 
     def close(self) -> None:

@@ -79,7 +79,8 @@ class ServiceNode:
         if settings.state_dir is not None:
             ps = settings.persistence
             self.persistence = Persistence(settings.state_dir, settings.robot, ps.every_keyframes, ps.keep)
-            self.persistence.resume(self._restore, service_state)
+            if self.persistence.resume(self._restore, service_state):
+                self.core.begin_session(ps.session_gap_s)
         self._publish_summary()
 
     # ------------------------------------------------------------ lifecycle
@@ -363,7 +364,7 @@ class ServiceNode:
             queue_depth=self.queue.depth,
             queue_capacity=self.queue.capacity,
             uptime_s=round(time.time() - self._started, 3),
-            persistence=self.persistence.status() if self.persistence is not None else None,
+            persistence=self.persistence.status(self.core) if self.persistence is not None else None,
             service_id=self.service_id,
             labels=self.labels.counters(),
             refused={"queries_busy": self.replies.budget.refused, "saves_busy": self.saves.busy},

@@ -23,10 +23,11 @@ class StreamClock:
         self.resets = 0
         self._run: list[float] = []
 
-    def check(self, t: float) -> None:
-        """Raise FrameRejected unless ``t`` may follow the reference (``accept`` it once the frame is used)."""
+    def check(self, t: float, jump_ok: bool = False) -> None:
+        """Raise FrameRejected unless ``t`` may follow the reference (``accept`` it once the frame is used).
+        ``jump_ok``: any time ahead may (the first frame of a new session of the map)."""
         ref = self.reference
-        if ref is None:
+        if ref is None or (jump_ok and t > ref):
             return
         if t == ref:
             raise FrameRejected(Reason.DUPLICATE_TIMESTAMP, f"timestamp {t} already processed")

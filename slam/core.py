@@ -3,14 +3,12 @@
 Per frame (``SlamCore.step``): (1) reject stale, duplicate or implausibly far timestamps (``slam.clock``) and
 unusable depth; (2) the front end gives the odometry pose and decides keyframes: the frame's own odometry when
 it can be chained, else RGB-D visual odometry (``perception.odometry_choice``); (3) a keyframe adds its
-odometry factors to the graph;
-(4) the mapping of the keyframe ``MAPPING_LAG`` keyframes back is applied: its landmark measurements and
-verified loop candidates; (5) this keyframe's mapping stages are handed to the runner (``slam.stages``:
-detection, objects, loop verification); (6) every frame is recorded relative to its keyframe, so the whole
-trajectory follows the graph.
-
-The stages read only what they are given and are applied at a fixed point, so the map is the same whether
-the runner runs them at once (``InlineRunner``) or on threads (``service.scheduler.ThreadedRunner``).
+odometry factors to the graph; (4) the mapping of the keyframe ``MAPPING_LAG`` keyframes back is applied: its
+landmark measurements and verified loop candidates; (5) this keyframe's mapping stages are handed to the
+runner (``slam.stages``: detection, objects, loop verification); (6) every frame is recorded relative to its
+keyframe, so the whole trajectory follows the graph. The stages read only what they are given and are applied
+at a fixed point, so the map is the same whether the runner runs them at once (``InlineRunner``) or on
+threads (``service.scheduler.ThreadedRunner``).
 """
 
 from __future__ import annotations
@@ -110,8 +108,8 @@ class SlamCore:
         self.clock = StreamClock(settings.keyframes.max_time_jump_s, settings.keyframes.time_jump_frames)
         self.tracking_state = TrackingState.TRACKING
         self.methods: Counter[str] = Counter()  # frames per tracking method (perception.hypotheses.Method)
-
-    # ------------------------------------------------------------ per frame
+        self.session_gap_s: float | None = None  # ``begin_session`` until the first frame; then the session's
+        self.session_keyframe: int | None = None  # first keyframe when it began anywhere
 
     @property
     def frontend(self) -> PerFrameOdometry | None:
@@ -125,11 +123,21 @@ class SlamCore:
     def last_timestamp(self) -> float:
         return self.records[-1].timestamp if self.records else -math.inf
 
+    def begin_session(self, gap_s: float) -> None:
+        """A new run on this map: a first frame more than ``gap_s`` after the last one may be anywhere and is
+        a lost keyframe, relocalized against the stored ones or starting a segment (``slam.relocalization``)."""
+        self.session_gap_s = gap_s if self.records else None
+
     def step(self, frame: Frame) -> StepResult:
         """Add one frame; raises FrameRejected (counted by the caller) when it cannot be used."""
         self.timings = {}
         self._check(frame)
         assert self.tracking is not None
+        if self.session_gap_s is not None:
+            if frame.timestamp - self.last_timestamp > self.session_gap_s:
+                self.tracking.frontend.new_session()
+                self.session_keyframe = len(self.kf_odometry)
+            self.session_gap_s = None
         version, n_loops = self.object_map_version, len(self.loops.records) if self.loops is not None else 0
         t0 = time.perf_counter()
         step = self.tracking.frontend.track(frame)
@@ -154,7 +162,7 @@ class SlamCore:
         )
 
     def _check(self, frame: Frame) -> None:
-        self.clock.check(frame.timestamp)
+        self.clock.check(frame.timestamp, jump_ok=self.session_gap_s is not None)
         if not np.any(frame.depth):
             raise FrameRejected(Reason.EMPTY_DEPTH, "depth image has no valid pixel")
         if self.tracking is None:

@@ -49,7 +49,7 @@ def place_lost(
         m, rel = found
         kf = graph.add_keyframe_from(m, rel.T_a_b, rel.sigma_m, rel.sigma_deg)
         segments.add_keyframe(kf)
-        segments.relocalizations += 1
+        segments.relocalizations, segments.last_match = segments.relocalizations + 1, m
         step.pose, step.lost, step.method = kf_odometry[m] @ rel.T_a_b, False, "relocalized"
         log.info("relocalized at t=%.3f against keyframe %d (%d inliers)", frame.timestamp, m, rel.inliers)
         return kf
@@ -68,7 +68,7 @@ def try_join(graph: Graph, segments: Segments, loops: LoopCloser | None, kf: int
         return
     m, rel = found
     graph.add_between(m, kf, rel.T_a_b, rel.sigma_m, rel.sigma_deg)
-    segments.relocalizations += 1
+    segments.relocalizations, segments.last_match = segments.relocalizations + 1, m
     join(graph, segments, m, kf)
 
 

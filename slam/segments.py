@@ -46,6 +46,7 @@ class Segments:
     gauge: dict[int, int] = field(default_factory=dict)  # segment -> its gauge prior's factor index
     joins: int = 0
     relocalizations: int = 0
+    last_match: int | None = None  # the stored keyframe of the last relocalization or join
 
     @property
     def count(self) -> int:
@@ -104,6 +105,7 @@ class Segments:
             "gauge": dict(self.gauge),
             "joins": self.joins,
             "relocalizations": self.relocalizations,
+            "last_match": self.last_match,
         }
 
     @classmethod
@@ -114,4 +116,5 @@ class Segments:
             dict(state["gauge"]),
             int(state["joins"]),
             int(state["relocalizations"]),
+            state.get("last_match"),
         )

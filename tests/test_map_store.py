@@ -10,11 +10,13 @@ import sqlite3
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from evaluation.trajectory_metrics import umeyama
 from loops.archive import RESIDENT, ColdLog
 from service.config import load_settings
 from service.map_persistence import Persistence, service_state
@@ -24,6 +26,7 @@ from slam.build import build_core
 from slam.parts import COLD, CoreParts, assemble, core_parts
 from slam.snapshot import core_state, restore_core
 from sources import open_dataset
+from sources.base import truth_per_frame
 
 SPEC = "synthetic:room?seed=0&frames=160&fps=10&width=320&height=240"
 CUT = 110  # after the first loop closures, before the last ones
@@ -104,6 +107,8 @@ from service.map_store import MapStore
 from slam.build import build_core
 from slam.parts import COLD, core_parts
 from sources import open_dataset
+from sources.base import truth_per_frame
+from evaluation.trajectory_metrics import umeyama
 settings = load_settings()
 ds = open_dataset(sys.argv[2])
 core, store = build_core(settings), MapStore(sys.argv[1], settings.robot, COLD)
@@ -241,3 +246,42 @@ def test_a_state_directory_of_the_snapshot_release_is_migrated_into_the_store(tm
     assert persistence.resume(restore_into(again), service_state)
     assert persistence.status()["resumed_from"]["file"].startswith("map.db#checkpoint-")
     assert np.array_equal(again[0].trajectory().poses, reference["after"][CUT - 1])
+
+
+def test_a_second_session_started_elsewhere_relocalizes_and_maps_in_the_first_sessions_frame(tmp_path):
+    """Session 1 maps the first two thirds of a lap; session 2 begins 1000 s later a lap on, at a place session
+    1 saw: its first keyframe is relocalized against the stored ones and its poses lie in session 1's frame."""
+    ds = open_dataset("synthetic:room?seed=0&frames=300&fps=10&width=320&height=240&revolutions=2")
+    settings = load_settings()
+    frames1 = [ds.frame(i) for i in range(100)]
+    _, store = _checkpointed(frames1, tmp_path / "map.db", 100)
+    store.close()
+
+    persistence = Persistence(tmp_path, settings.robot)
+    box: list = []
+    assert persistence.resume(lambda state: box.append(restore_core(settings, state["pipeline"])), _core_only)
+    core = box[0]
+    core.begin_session(settings.persistence.session_gap_s)
+    second = list(range(170, 230))
+    for i in second:
+        frame = ds.frame(i)
+        core.step(replace(frame, timestamp=frame.timestamp + 1000.0))
+    status = persistence.status(core)["session"]
+    assert status["first_keyframe"] is not None and status["localized"], status
+    assert status["against_keyframe"] is not None and status["against_keyframe"] < status["first_keyframe"]
+
+    truth = truth_per_frame(ds)
+    poses = core.trajectory(tied_only=True)
+    times = np.round(poses.timestamps, 6)
+    first = {round(float(f.timestamp), 6) for f in frames1}
+    one = np.array([t in first for t in times])
+    assert one.sum() == 100 and (~one).sum() == len(second)  # every frame of both sessions is in the map
+    T = umeyama(poses.poses[one, :3, 3], truth[:100, :3, 3])  # session 1's frame -> the true world
+    p2 = poses.poses[~one, :3, 3] @ T[:3, :3].T + T[:3, 3]
+    errors = np.linalg.norm(p2 - truth[second, :3, 3], axis=1)
+    assert np.median(errors) < 0.05, errors
+
+
+def _core_only(small, logs):
+    """A checkpoint written by ``_checkpointed`` (the core's parts alone) as ``Persistence.resume`` gives it."""
+    return {"pipeline": assemble(CoreParts(small, logs), materialize=False)}
