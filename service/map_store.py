@@ -19,7 +19,6 @@ Blobs are ``service.persistence.encode`` payloads, read with its plain-data unpi
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import sqlite3
@@ -27,14 +26,11 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from itertools import chain, islice
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from loops.archive import ColdLog
-from service.persistence import SnapshotError, decode, encode
+from service.store_rows import StoreError, blob, join, kind_of, tail, token, unblob
 
 log = logging.getLogger(__name__)
 
@@ -57,50 +53,6 @@ CREATE TABLE IF NOT EXISTS cold (
 MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {}
 """Schema version -> the step that brings a store of that version to the next (none yet: version 1 is the
 first; a store without ``meta.schema_version`` is version 0, an empty file)."""
-
-
-class StoreError(Exception):
-    """The map store cannot be opened or read: corrupt, truncated, of a newer schema or another robot's."""
-
-
-def _blob(value: Any) -> tuple[bytes, bytes]:
-    data = b"".join(encode(value))
-    return data, hashlib.sha256(data).digest()
-
-
-def _unblob(data: bytes, sha: bytes, what: str) -> Any:
-    if hashlib.sha256(data).digest() != sha:
-        raise StoreError(f"{what}: checksum mismatch")
-    try:
-        return decode(bytearray(data))
-    except SnapshotError as exc:
-        raise StoreError(f"{what}: {exc}") from exc
-
-
-def kind_of(rows: Any) -> str:
-    """How a log's rows are held: ``array``, ``dict`` (rows are its items) or ``list``."""
-    return "array" if isinstance(rows, np.ndarray) else "dict" if isinstance(rows, dict) else "list"
-
-
-def tail(rows: Any, start: int, stop: int | None = None) -> Any:
-    """Rows ``[start, stop)`` of a log: an array slice, a list slice, or a dict's items as a list."""
-    if isinstance(rows, dict):
-        return list(islice(rows.items(), start, stop))
-    return rows[start:stop] if isinstance(rows, np.ndarray) else list(rows[start:stop])
-
-
-def token(rows: Any) -> int:
-    """Identity of a log's container: an array view counts as the array it views (growing replaces it)."""
-    base = rows.base if isinstance(rows, np.ndarray) and rows.base is not None else rows
-    return id(base)
-
-
-def join(kind: str, pieces: list[Any], length: int) -> Any:
-    """A log of ``kind`` from its chunks' rows, cut to ``length``."""
-    if kind == "array":
-        return np.concatenate(pieces)[:length] if pieces else np.zeros(0)
-    rows = list(islice(chain.from_iterable(pieces), length))
-    return dict(rows) if kind == "dict" else rows
 
 
 @dataclass
@@ -218,13 +170,13 @@ class MapStore:
         try:
             with self.transaction():
                 lengths = {name: self._write_log(name, rows) for name, rows in logs.items()}
-                blob, sha = _blob(small)
+                data, sha = blob(small)
                 cur = self.db.execute(
                     "INSERT INTO checkpoints (session, created, keyframes, frames, logs, small, sha) "
                     "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    (self.session, time.time(), keyframes, frames, json.dumps(lengths), blob, sha),
+                    (self.session, time.time(), keyframes, frames, json.dumps(lengths), data, sha),
                 )
-                self.bytes_written += len(blob)
+                self.bytes_written += len(data)
                 self._prune()
         except BaseException:
             self.logs = before  # the rolled-back rows are written again next time
@@ -261,7 +213,7 @@ class MapStore:
         return max(generation, -1 if row[0] is None else int(row[0])) + 1
 
     def _write_chunk(self, name: str, state: LogState, rows: Any, first: int, stop: int, level: int) -> None:
-        data, sha = _blob(tail(rows, first, stop))
+        data, sha = blob(tail(rows, first, stop))
         self.db.execute(
             "INSERT OR REPLACE INTO chunks VALUES (?, ?, ?, ?, ?, ?, ?)",
             (name, state.generation, first, stop - first, level, data, sha),
@@ -286,7 +238,7 @@ class MapStore:
 
     def _write_cold(self, name: str, state: LogState, rows: list[Any]) -> None:
         for i, row in enumerate(rows, state.written):
-            data, sha = _blob(row)
+            data, sha = blob(row)
             self.db.execute(
                 "INSERT OR REPLACE INTO cold VALUES (?, ?, ?, ?, ?)", (name, state.generation, i, data, sha)
             )
@@ -336,8 +288,8 @@ class MapStore:
         row = self.db.execute(
             "SELECT session, created, keyframes, frames, logs, small, sha FROM checkpoints WHERE id = ?", (checkpoint,)
         ).fetchone()
-        session, created, keyframes, frames, text, blob, sha = row
-        small = _unblob(blob, sha, f"checkpoint {checkpoint}")
+        session, created, keyframes, frames, text, data, sha = row
+        small = unblob(data, sha, f"checkpoint {checkpoint}")
         logs, states = {}, {}
         for name, (generation, length, kind) in json.loads(text).items():
             if name in self.cold:  # read on demand
@@ -361,7 +313,7 @@ class MapStore:
         for first, count, level, data, sha in rows:
             if first != at:
                 raise StoreError(f"log {name}: rows {at}-{first} missing")
-            pieces.append(_unblob(data, sha, f"log {name} rows {first}+{count}"))
+            pieces.append(unblob(data, sha, f"log {name} rows {first}+{count}"))
             chunks.append((first, count, level))
             at = first + count
         if at < length:
@@ -390,7 +342,7 @@ class MapStore:
         for idx, data, sha in rows:
             if idx != at:
                 raise StoreError(f"log {name}: row {at} missing")
-            yield _unblob(data, sha, f"log {name} row {idx}")
+            yield unblob(data, sha, f"log {name} row {idx}")
             at += 1
         if at < stop:
             raise StoreError(f"log {name}: {stop} rows expected, {at} stored")
