@@ -4,7 +4,8 @@ What it holds (schema ``SCHEMA_VERSION``, ``meta.schema_version``; ``MIGRATIONS`
 
 - ``chunks``: the rows of the SLAM core's append-only logs (``slam.parts``), a chunk per checkpoint with the
   rows new since the previous one. Trailing chunks are merged ``FANOUT`` at a time into one of the next level
-  (re-encoded from the live log, no read), so a log of any length is a few dozen chunks.
+  up to ``TOP_LEVEL`` (re-encoded from the live log, no read; so a merge never re-encodes more than
+  ``FANOUT ** TOP_LEVEL`` checkpoints' rows), and a log of n checkpoints is about n / 256 + 32 chunks.
 - ``cold``: the cold logs' rows (``slam.parts.COLD``: loop-closure features, map points), one per keyframe,
   never merged and read back one by one, on demand.
 - ``checkpoints``: per checkpoint, the length and generation of every log, and the small part of the state.
@@ -36,6 +37,7 @@ log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
 FANOUT = 16  # trailing chunks of one level merged into one of the next
+TOP_LEVEL = 2  # chunks of FANOUT**2 checkpoints are not merged further: a merge re-encodes at most that many
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS sessions (
@@ -223,10 +225,11 @@ class MapStore:
         self.bytes_written += len(data)
 
     def _merge(self, name: str, state: LogState, rows: Any) -> None:
-        """Merge the last ``FANOUT`` chunks when they are of one level (repeatedly: a merge can complete one)."""
+        """Merge the last ``FANOUT`` chunks when they are of one level below ``TOP_LEVEL`` (repeatedly: a merge
+        can complete one)."""
         chunks = state.chunks
         assert chunks is not None  # a writer's own log (``_write_log`` starts a new generation otherwise)
-        while len(chunks) >= FANOUT and len({c[2] for c in chunks[-FANOUT:]}) == 1:
+        while len(chunks) >= FANOUT and len(lv := {c[2] for c in chunks[-FANOUT:]}) == 1 and min(lv) < TOP_LEVEL:
             merged = chunks[-FANOUT:]
             del chunks[-FANOUT:]
             first, stop = merged[0][0], merged[-1][0] + merged[-1][1]

@@ -285,3 +285,27 @@ def test_a_second_session_started_elsewhere_relocalizes_and_maps_in_the_first_se
 def _core_only(small, logs):
     """A checkpoint written by ``_checkpointed`` (the core's parts alone) as ``Persistence.resume`` gives it."""
     return {"pipeline": assemble(CoreParts(small, logs), materialize=False)}
+
+
+def test_chunks_merge_up_to_the_top_level_and_read_back_whole(tmp_path):
+    """600 checkpoints of one row each: merged 16 at a time, never above level 2 (a merge re-encodes at most
+    256 checkpoints' rows), about n / 256 + 32 chunks, and every row back in order; a replaced container is a
+    new generation written whole, the old one deleted once no kept checkpoint needs it."""
+    store = MapStore(tmp_path / "map.db", "robot1")
+    rows: list[int] = []
+    for i in range(600):
+        rows.append(i)
+        store.checkpoint({"i": i}, {"rows": rows}, i, i)
+    levels = store.db.execute("SELECT level, COUNT(*) FROM chunks WHERE log = 'rows' GROUP BY level").fetchall()
+    assert max(level for level, _ in levels) == 2
+    assert sum(n for _, n in levels) <= 600 // 256 + 32
+    loaded = MapStore(tmp_path / "map.db", "robot1").load()
+    assert loaded is not None and loaded.logs["rows"] == list(range(600)) and loaded.small == {"i": 599}
+
+    replaced = [-1, -2]
+    for i in range(4):  # keep = 3: the old generation outlives three checkpoints
+        store.checkpoint({"i": 600 + i}, {"rows": replaced}, 600, 600)
+    generations = store.db.execute("SELECT DISTINCT generation FROM chunks WHERE log = 'rows'").fetchall()
+    assert generations == [(1,)]
+    loaded = MapStore(tmp_path / "map.db", "robot1").load()
+    assert loaded is not None and loaded.logs["rows"] == [-1, -2]
