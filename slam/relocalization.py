@@ -68,13 +68,15 @@ def try_join(graph: Graph, segments: Segments, loops: LoopCloser | None, kf: int
         return
     m, rel = found
     graph.add_between(m, kf, rel.T_a_b, rel.sigma_m, rel.sigma_deg)
-    segments.relocalizations, segments.last_match = segments.relocalizations + 1, m
+    segments.relocalizations += 1
     join(graph, segments, m, kf)
 
 
 def join(graph: Graph, segments: Segments, a: int, b: int) -> None:
-    """Join keyframes ``a`` and ``b``'s segments (a measured factor links them) and drop the gauge prior."""
+    """Join keyframes ``a`` (the older, stored one) and ``b``'s segments (a measured factor links them: a
+    relocalization or a loop closure) and drop the gauge prior."""
     gauges = segments.join(a, b)
+    segments.last_match = a
     if gauges:
         graph.remove_factors(gauges)
     log.info("map segments of keyframes %d and %d joined", a, b)
