@@ -114,7 +114,7 @@ class Persistence:
                 log.exception("snapshot %s cannot be restored; trying the previous one", path.name)
                 self.skipped.append((path.name, f"cannot be restored: {exc!r}"))
                 continue
-            self._resumed(f"snapshots/{path.name}", snap["keyframes"], snap["frames_processed"], snap["created"])
+            self._resumed(path.name, snap["keyframes"], snap["frames_processed"], snap["created"])
             self._saved = (0, 0)  # the first checkpoint writes it all into the store
             log.info("migrating %s into the map store %s", path, STORE_NAME)
             return True

@@ -236,7 +236,7 @@ def test_a_state_directory_of_the_snapshot_release_is_migrated_into_the_store(tm
     box: list = []
     persistence = Persistence(tmp_path, "robot1")
     assert persistence.resume(restore_into(box), service_state)
-    assert persistence.status()["resumed_from"]["file"].startswith("snapshots/snapshot-")
+    assert persistence.status()["resumed_from"]["file"].startswith("snapshot-")
     migrated = box[0]
     parts = core_parts(migrated)
     assert persistence.save({"pipeline": parts.small}, parts.logs, migrated.graph.num_keyframes, CUT)  # all, once
