@@ -21,7 +21,7 @@ from typing import Any
 from service.config import ConfigError
 from service.map_store import SCHEMA_VERSION, MapStore, StoreError
 from service.persistence import SnapshotStore
-from slam.core import SlamCore
+from slam.core import MAPPING_LAG, SlamCore
 from slam.parts import COLD, CoreParts, assemble
 
 log = logging.getLogger(__name__)
@@ -125,10 +125,14 @@ class Persistence:
         self.resumed_from = {"file": source, "keyframes": keyframes, "frames_processed": frames, "created": created}
         log.info("resumed from %s: %d keyframes, %d frames processed", source, keyframes, frames)
 
-    def due(self, keyframes: int) -> bool:
-        """True once ``every_keyframes`` keyframes were added since the newest checkpoint, and no failed write
-        is waiting out its backoff (a full or read-only disk is not retried after every frame)."""
-        return keyframes - self._saved[0] >= self.every_keyframes and time.monotonic() >= self._retry_at
+    def due(self, keyframes: int, idle: bool = True) -> bool:
+        """True once ``every_keyframes`` keyframes were added since the newest checkpoint and the keyframe
+        mapping is ``idle`` (taking the state waits for its running stages: a checkpoint waits a few frames for
+        them rather than the worker for it), or ``MAPPING_LAG`` more keyframes were added meanwhile; and no
+        failed write is waiting out its backoff (a full or read-only disk is not retried after every frame)."""
+        behind = keyframes - self._saved[0]
+        ready = behind >= self.every_keyframes and (idle or behind >= self.every_keyframes + MAPPING_LAG)
+        return ready and time.monotonic() >= self._retry_at
 
     def changed(self, keyframes: int, frames: int) -> bool:
         """True when there is work that the newest checkpoint does not hold."""

@@ -39,6 +39,7 @@ from service.scheduler import ThreadedRunner
 from service.stats import ServiceStats
 from slam.build import build_core
 from slam.parts import core_parts
+from slam.runner import idle
 from slam.snapshot import restore_core
 
 log = logging.getLogger(__name__)
@@ -276,7 +277,7 @@ class ServiceNode:
             return False
         keyframes, frames, completed = self.core.graph.num_keyframes, self.stats.processed, self.completed
         changed = p.changed(keyframes, frames) or completed != self._saved_completed  # rejected, dropped frames too
-        if not (p.due(keyframes) or (final and changed)):
+        if not (p.due(keyframes, idle(self.core.pending)) or (final and changed)):
             return False
         t0 = time.perf_counter()
         with self._lock:

@@ -8,7 +8,7 @@ they are given and their results are applied at the same point, both give bit-id
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from enum import Enum
 from typing import Any, Protocol
 
@@ -24,6 +24,15 @@ class Handle(Protocol):
     """The result of a submitted stage; ``result()`` waits for it and re-raises the stage's exception."""
 
     def result(self) -> Any: ...
+
+    def done(self) -> bool:
+        """The stage has finished (``result()`` would not wait)."""
+        ...
+
+
+def idle(pending: Iterable[dict[str, Handle]]) -> bool:
+    """Every stage of ``pending`` (``SlamCore.pending``) has finished: taking the core's state waits for none."""
+    return all(handle.done() for jobs in pending for handle in jobs.values())
 
 
 class Runner(Protocol):
@@ -44,6 +53,9 @@ class Done:
         if self._error is not None:
             raise self._error
         return self._value
+
+    def done(self) -> bool:
+        return True
 
 
 class InlineRunner:

@@ -30,6 +30,7 @@ from service.protocol import decode_frame, encode_frame
 from service.replay import frame_publisher
 from service.zenoh_session import open_session
 from slam.build import build_core
+from slam.core import MAPPING_LAG
 from slam.snapshot import core_state, restore_core
 from sources import open_dataset
 from tests.test_integration_zenoh import _get, _wait_for_service
@@ -231,7 +232,8 @@ def test_corrupt_newest_checkpoint_falls_back_to_the_previous_one_and_reports_it
         assert status["resumed_from"]["file"] == f"map.db#checkpoint-{ids[1]}"
         assert status["skipped_snapshots"][0]["file"] == f"checkpoint-{ids[0]}"
         m = status["resumed_from"]["frames_processed"]
-        assert m < 60 and status["resumed_from"]["keyframes"] % EVERY == 0
+        assert m < 60 and status["resumed_from"]["keyframes"] >= EVERY  # a periodic one (perhaps deferred while
+        # the keyframe mapping ran: at most MAPPING_LAG keyframes)
         assert resumed.status()["frames_processed"] == m
         assert np.array_equal(resumed.trajectories()[0].poses, reference["after"][m])
 
@@ -432,8 +434,8 @@ def test_serve_killed_mid_run_loses_at_most_n_keyframes_and_keeps_the_prefix(rou
         after = _wait_for_service(session, "objslam/ptest/status")
         resumed = after["persistence"]["resumed_from"]
         m = resumed["frames_processed"]
-        assert resumed["keyframes"] % EVERY == 0 and after["keyframes"] == resumed["keyframes"]
-        assert 0 <= seen["keyframes"] - after["keyframes"] <= EVERY
+        assert after["keyframes"] == resumed["keyframes"]
+        assert seen["keyframes"] - after["keyframes"] <= EVERY + MAPPING_LAG  # checkpoints wait for idle mapping
         assert after["frames_processed"] == m and reference["keyframes"][m] == resumed["keyframes"]
         _same_poses(_trajectory(session), reference["after"][m])  # the prefix, exactly
 
