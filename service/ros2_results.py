@@ -6,7 +6,7 @@
 all in the ``ros2.map_frame`` frame, with the type hashes of ROS 2 Jazzy and rmw_zenoh's attachment (sequence
 number, source time, publisher gid). Liveliness tokens announce the node and its publishers the way rmw_zenoh
 does, so ``ros2 topic list`` on the same router can see them. A thread of its own polls the node's summary a
-few times a second: publishing never delays a frame.
+few times a second (the path and the objects at most twice): publishing never delays a frame.
 """
 
 from __future__ import annotations
@@ -27,6 +27,8 @@ from sources.ros2 import keys, messages
 log = logging.getLogger(__name__)
 
 PERIOD_S = 0.2
+MAP_PERIOD_S = 0.5
+"""The path and the objects are published at most this often: serialising them costs the worker's GIL time."""
 NODE_NAME = "objslam"
 QOS = "::,10:,:,:,,"
 """rmw_zenoh's QoS field of a liveliness token (defaults: reliable, volatile, keep last 10), best effort here."""
@@ -43,7 +45,8 @@ class Ros2Results:
         self._gids: dict[str, bytes] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="objslam-ros2-results", daemon=True)
-        self._seen: dict[str, Any] = {}
+        self._seen: dict[str, Any] = {}  # the version of each message last published
+        self._sent_at: dict[str, float] = {}  # and when (monotonic)
         self._kf_times: list[float] = []  # the keyframes' times, from the records read so far
         self._records_read = 0
 
@@ -89,11 +92,12 @@ class Ros2Results:
                 log.exception("could not publish the ROS 2 results")
 
     def publish_changes(self) -> None:
-        """Publish what changed since the last call (path when the graph moved, pose per frame, objects).
+        """Publish what changed since the last call: the pose per frame, the path when the graph moved and the
+        objects when they changed, those two at most every ``MAP_PERIOD_S`` (their cost grows with the map).
 
         The core's lock (which the worker needs for every frame) is held only to read what changed: nothing
         when no frame came, the keyframe times of the new records only."""
-        node, frame_id = self.node, self.settings.map_frame
+        node, frame_id, now = self.node, self.settings.map_frame, time.monotonic()
         summary = node.summary
         with node.hold_core():
             core = node.core
@@ -104,7 +108,7 @@ class Ros2Results:
                 "path": (core.graph.updates, core.graph.num_keyframes),
                 "objects": (summary.objects_key, summary.loops_key),
             }
-            changed = [name for name, version in versions.items() if self._changed(name, version)]
+            changed = [name for name, version in versions.items() if self._due(name, version, now)]
             if not changed:
                 return
             kf_poses = core.graph.poses()
@@ -122,12 +126,14 @@ class Ros2Results:
         if "objects" in changed:
             loops = _segments(summary.loops, kf_poses)
             self._put("objects", messages.encode_marker_array(stamp, frame_id, summary.objects, loops), stamp)
+        for name in changed:
+            self._seen[name], self._sent_at[name] = versions[name], now
 
-    def _changed(self, name: str, version: Any) -> bool:
+    def _due(self, name: str, version: Any, now: float) -> bool:
+        """``name`` changed since it was last published, and (path, objects) that was ``MAP_PERIOD_S`` ago."""
         if self._seen.get(name) == version:
             return False
-        self._seen[name] = version
-        return True
+        return name == "pose" or now - self._sent_at.get(name, -np.inf) >= MAP_PERIOD_S
 
     def _put(self, name: str, payload: bytes, stamp: float) -> None:
         self.published[name] += 1

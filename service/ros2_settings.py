@@ -18,7 +18,10 @@ class Ros2Settings(BaseModel):
     odom_topic: str | None = Field(None, description="nav_msgs/Odometry: the frames' external odometry")
     detections_topic: str | None = Field(None, description="vision_msgs/Detection2DArray: provided detections")
     sync_tolerance_s: float = Field(0.02, gt=0, description="colour and depth stamps paired within this")
-    queue_messages: int = Field(256, ge=8, description="raw messages held for decoding; when full the oldest drops")
+    queue_messages: int = Field(4096, ge=8, description="raw messages held for decoding; beyond, the oldest drop")
+    queue_bytes: int = Field(
+        256 * 2**20, ge=2**20, description="bytes of raw messages held for decoding; beyond, the oldest drop"
+    )
     publish: bool = Field(True, description="publish the path, pose and objects as ROS 2 messages")
     map_frame: str = Field("map", description="frame_id of the published results")
     results_namespace: str = Field("/objslam", description="topics: <namespace>/path, /pose, /objects")

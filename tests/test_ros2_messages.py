@@ -13,7 +13,8 @@ from graph.geometry import pose_from_tum
 from perception.frame import CameraModel, Detection, Frame, FrameRejected, Intrinsics, Reason
 from sources import DatasetError, open_dataset
 from sources.base import Dataset
-from sources.ros2.cdr import deserialize, make, serialize, typestore
+from sources.ros2.cdr import deserialize, header, make, serialize, typestore
+from sources.ros2.encoders import _pose_stamped
 from sources.ros2.keys import (
     JAZZY_TYPE_HASHES,
     Attachment,
@@ -48,9 +49,12 @@ from sources.ros2.messages import (
     encode_path,
     encode_pose_stamped,
     from_stamp,
+    peek_raw_compressed_image,
+    peek_raw_image,
+    pixels,
     to_stamp,
 )
-from sources.ros2.pairing import FramePairer, RosTopics
+from sources.ros2.pairing import MAX_UNPAIRED_AGE_S, FramePairer, RosTopics
 from sources.ros2.rosbag import write_rosbag
 
 MAX = 2048 * 1536
@@ -186,6 +190,23 @@ def test_image_row_padding_and_big_endian_are_honoured():
     assert np.array_equal(decode_image(raw, MAX).value, depth)
 
 
+def test_raw_images_convert_without_copies_where_the_wire_is_already_rgb8_or_u16le():
+    rgb, depth = rgb_image(), depth_image()
+    for image, encoding in ((rgb, "rgb8"), (depth, "16UC1")):
+        held = peek_raw_image(encode_image(1.0, "c", image, encoding), MAX)
+        assert held.value.shape == image.shape[:2] and held.value.nbytes == len(held.value.raw)
+        view = pixels(held.value, MAX, copy=False)
+        assert np.array_equal(view, image) and np.shares_memory(view, np.frombuffer(held.value.raw, np.uint8))
+        owned = pixels(held.value, MAX)
+        assert np.array_equal(owned, image) and owned.flags.writeable and not np.shares_memory(owned, view)
+    padded = np.zeros((48, 200), np.uint8)
+    padded[:, :192] = rgb.reshape(48, 192)
+    held = peek_raw_image(raw_image(height=48, width=64, encoding="rgb8", step=200, data=padded.reshape(-1)), MAX)
+    assert np.array_equal(pixels(held.value, MAX, copy=False), rgb)  # rows cut from their padding
+    jpeg = peek_raw_compressed_image(encode_compressed_image(1.0, "c", rgb, "png"), MAX)
+    assert jpeg.value.shape == (48, 64) and np.array_equal(pixels(jpeg.value, MAX, copy=False), rgb)
+
+
 def test_compressed_image_round_trip():
     rgb = rgb_image()
     png = decode_compressed_image(encode_compressed_image(3.0, "cam", rgb, "png"), MAX)
@@ -224,6 +245,19 @@ def test_path_and_pose_stamped_carry_poses_with_their_times():
     pose = deserialize(encode_pose_stamped(9.0, "map", POSE), POSE_STAMPED).pose
     q = [pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w]
     assert np.allclose(pose_from_tum(np.array([pose.position.x, pose.position.y, pose.position.z, *q])), POSE)
+
+
+@pytest.mark.parametrize("frame_id", ["", "m", "map", "odom_frame"])
+def test_path_bytes_are_those_of_rosbags_serializer(frame_id):
+    """``encode_path`` writes the CDR itself (fast): the very bytes rosbags gives, whatever the padding."""
+    rng = np.random.default_rng(len(frame_id))
+    poses = []
+    for i in range(5):
+        q = rng.normal(size=4)
+        poses.append((1.5 + i * 0.1234567, pose_from_tum(np.concatenate([rng.normal(size=3), q / np.linalg.norm(q)]))))
+    for few in (poses[:0], poses[:1], poses):
+        reference = make(PATH, header=header(9.25, frame_id), poses=[_pose_stamped(t, frame_id, T) for t, T in few])
+        assert encode_path(9.25, frame_id, few) == serialize(reference, PATH)
 
 
 def test_marker_array_shows_objects_labels_and_loops():
@@ -387,11 +421,82 @@ def test_unpaired_colour_is_counted():
     assert pairer.depth(depth(0.9)) == [] and pairer.counters()["unpaired_depth"] == 1  # late: older than the last pair
 
 
-def test_unpaired_messages_are_bounded():
+def test_unpaired_messages_are_bounded_by_stream_time():
     pairer = with_camera()
-    for i in range(100):
+    for i in range(100):  # 4 Hz for 24.75 s, no depth: kept while within 10 s of the newest
+        pairer.color(color(i * 0.25))
+    assert MAX_UNPAIRED_AGE_S == 10.0
+    assert pairer.counters()["unpaired_color"] == 59  # stamps 0 .. 14.5 s given up, 14.75 .. 24.75 s kept
+    assert pairer.held_bytes == 41 * 64 * 48 * 3
+
+
+def test_unpaired_messages_are_bounded_by_bytes_oldest_first():
+    image = 64 * 48 * 3
+    pairer = with_camera(max_bytes=10 * image)
+    for i in range(30):
         pairer.color(color(i / 30))
-    assert pairer.counters()["unpaired_color"] == 100 - 30
+    assert pairer.counters()["unpaired_color"] == 20 and pairer.held_bytes == 10 * image
+    frames = pairer.depth(depth(29 / 30)) + pairer.depth(depth(19 / 30))  # the newest kept, the oldest dropped
+    assert [f.timestamp for f in frames] == [29 / 30] and pairer.counters()["unpaired_depth"] == 1
+
+
+def flood(n: int, seed: int, lead: float) -> list[tuple[str, float]]:
+    """The messages of ``n`` frames at 30 Hz as a flood delivers them: each topic in order, but colour falling
+    behind depth by up to ``lead`` frames and catching up, odometry now behind, now ahead (ties at random)."""
+    rng = np.random.default_rng(seed)
+    i = np.arange(n)
+    shift = {
+        "color": np.minimum(np.minimum(0.6 * i, 0.6 * (n - 1 - i)), lead),  # slopes < 1: colour stays in order
+        "depth": 0.0 * i,
+        "odom": 10 * np.sin(2 * np.pi * i / n),
+    }
+    keyed = [(k + shift[kind][k] + rng.uniform(0, 0.3), kind, k) for kind in shift for k in i]
+    return [(kind, k / 30 + (0.004 if kind == "depth" else 0.0)) for _, kind, k in sorted(keyed)]
+
+
+def feed(pairer: FramePairer, order: list[tuple[str, float]]) -> list[Frame]:
+    frames = []
+    for kind, t in order:
+        if kind == "odom":
+            pairer.odometry(Stamped(t, "odom", pose_from_tum(np.array([t, 0, 0, 0, 0, 0, 1.0]))))
+            frames += [p.frame() for p in pairer.ready_pairs()]
+        else:
+            frames += pairer.color(color(t)) if kind == "color" else pairer.depth(depth(t))
+    return frames + pairer.flush()
+
+
+@pytest.mark.parametrize(("seed", "lead"), [(0, 40), (1, 120)])
+def test_an_out_of_order_flood_pairs_every_frame_in_order_with_its_odometry(seed, lead):
+    n = 400
+    order = flood(n, seed, lead)
+    kinds = np.array([{"color": 1, "depth": -1}[k] for k, _ in order if k != "odom"])
+    assert -np.cumsum(kinds).min() >= lead - 1  # depth that far ahead: beyond the 30 messages once held (and 3 s)
+    frames = feed(with_camera(hold_s=2.0, waits_for=["odom"]), order)
+    assert [f.seq for f in frames] == list(range(n))
+    np.testing.assert_allclose([f.timestamp for f in frames], np.arange(n) / 30)
+    assert all(f.odometry is not None and f.odometry[0, 3] == f.timestamp for f in frames)
+
+
+def test_a_lost_depth_does_not_hold_later_frames():
+    pairer = with_camera()
+    pairer.color(color(1.0))  # its depth is lost
+    pairer.color(color(1.1))
+    assert pairer.depth(depth(1.05)) == []  # depth has passed 1.0 (+ tolerance): colour 1.0 waits for nothing
+    assert [f.timestamp for f in pairer.depth(depth(1.1))] == [1.1]
+    assert pairer.counters()["unpaired_color"] == 1 and pairer.counters()["unpaired_depth"] == 1
+
+
+def test_waiting_for_odometry_releases_as_soon_as_it_comes_or_after_the_hold():
+    pairer = with_camera(hold_s=0.5, waits_for=["odom"])
+    pairer.color(color(1.0))
+    assert pairer.depth(depth(1.0)) == [] and pairer.ready_pairs() == []
+    pairer.odometry(Stamped(1.0, "odom", POSE))
+    (pair,) = pairer.ready_pairs()
+    assert pair.timestamp == 1.0 and pair.odometry is not None and np.array_equal(pair.odometry, POSE)
+    pairer.color(color(1.1))
+    assert pairer.depth(depth(1.1)) == [] and pairer.color(color(1.5)) == []  # no odometry yet, 0.4 s later
+    (frame,) = pairer.color(color(1.6))  # 0.5 s later: without it
+    assert frame.timestamp == 1.1 and frame.odometry is None
 
 
 def test_pairs_without_camera_info_are_counted():
@@ -417,6 +522,7 @@ def test_odometry_and_detections_join_by_stamp():
     pairer.detections(Stamped(1.0, "cam", [Detection("cup", 0.5, (1.0, 1.0, 9.0, 9.0))]))
     pairer.color(color(1.0))
     (frame,) = pairer.depth(depth(1.0))
+    assert frame.odometry is not None and frame.detections is not None
     assert np.array_equal(frame.odometry, np.eye(4)) and frame.detections[0].label == "cup"
     pairer.color(color(2.0))
     (frame,) = pairer.depth(depth(2.0))
@@ -468,6 +574,7 @@ def test_rosbag_replays_the_scene(scene, tmp_path, storage):
         assert abs(frame.timestamp - original.timestamp) <= 1e-9 and frame.index == i
         assert np.array_equal(frame.rgb, original.rgb) and np.array_equal(frame.depth, original.depth)
         assert np.abs(frame.odometry - original.odometry).max() < 1e-9
+        assert frame.detections is not None and original.detections is not None
         assert [d.label for d in frame.detections] == [d.label for d in original.detections]
         assert np.allclose([d.box for d in frame.detections], [d.box for d in original.detections], atol=1e-9)
 

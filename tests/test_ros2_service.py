@@ -10,6 +10,7 @@ import json
 import time
 from contextlib import contextmanager
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,10 +20,12 @@ from service.config import load_settings
 from service.node import ServiceNode
 from service.protocol import encode_frame
 from service.ros2_bridge import Ros2Bridge
+from service.ros2_ingest import Incoming, Ros2Ingest, frame_message
+from service.ros2_settings import Ros2Settings
 from service.zenoh_session import open_session
 from sources import open_dataset
 from sources.ros2 import keys, messages
-from tests.conftest import free_port
+from tests.conftest import free_port, make_frame
 
 pytestmark = pytest.mark.integration
 FRAMES = 24
@@ -176,7 +179,7 @@ def test_bad_messages_are_rejected_with_their_reasons_and_counted(ros_service):
     robot.put(TOPICS["depth"], messages.IMAGE, messages.encode_image(f0.timestamp + 0.1, "c", f0.depth[:100], "16UC1"))
     robot.put(TOPICS["rgb"], messages.IMAGE, b"\x00\x01\x00\x00garbage")  # not CDR of an Image
     distorted = messages.encode_camera_info(f0.timestamp + 0.2, "c", f0.camera)
-    info = messages.typestore().deserialize_cdr(distorted, messages.CAMERA_INFO)
+    info: Any = messages.typestore().deserialize_cdr(distorted, messages.CAMERA_INFO)
     info.d = np.array([0.1, 0.0, 0.0, 0.0, 0.0])
     robot.put(TOPICS["info"], messages.CAMERA_INFO, messages.typestore().serialize_cdr(info, messages.CAMERA_INFO))
     # each topic has its own callback: let the pairs above form before a colour 5 s later makes them stale
@@ -219,8 +222,14 @@ def test_the_map_comes_back_as_ros2_messages_with_jazzy_type_hashes(ros_service)
         robot.frame(frame)
         time.sleep(0.03)
     _wait(node, FRAMES)
-    time.sleep(0.8)  # the results thread publishes every 0.2 s
     store = messages.typestore()
+    keyframes, deadline = node.status()["keyframes"], time.monotonic() + 5.0
+    while time.monotonic() < deadline:  # the path goes out at most every 0.5 s: until it has every keyframe
+        time.sleep(0.1)
+        path: Any = store.deserialize_cdr(received["path"][-1][1], messages.PATH) if received["path"] else None
+        if path is not None and len(path.poses) == keyframes:
+            break
+    time.sleep(0.3)  # the pose of the last frame too (every 0.2 s)
     for name, typename in (
         ("path", messages.PATH),
         ("pose", messages.POSE_STAMPED),
@@ -234,7 +243,8 @@ def test_the_map_comes_back_as_ros2_messages_with_jazzy_type_hashes(ros_service)
     path = store.deserialize_cdr(received["path"][-1][1], messages.PATH)
     assert path.header.frame_id == "map" and len(path.poses) == node.status()["keyframes"]
     last = np.array(node.trajectory_reply()["poses"][-1][1:4])
-    pose = store.deserialize_cdr(received["pose"][-1][1], messages.POSE_STAMPED).pose.position
+    stamped: Any = store.deserialize_cdr(received["pose"][-1][1], messages.POSE_STAMPED)
+    pose = stamped.pose.position
     np.testing.assert_allclose([pose.x, pose.y, pose.z], last, atol=1e-9)
     tokens = robot_session.liveliness().get("@ros2_lv/0/**", timeout=2.0)
     names = [str(r.ok.key_expr) for r in tokens if r.ok is not None]
@@ -343,3 +353,86 @@ def test_provided_detections_on_their_topic_reach_the_object_map():
         by_class = node.status()["keyframe_detections_by_class"]
         truth = {d.label for i in range(len(ds)) for d in ds.frame(i).detections or []}
         assert by_class and set(by_class) <= truth
+
+
+# ---------------------------------------------------------------- the ingest without zenoh
+
+
+def _ingest(**settings) -> tuple[Ros2Ingest, list[bytes], list[str]]:
+    """A ``Ros2Ingest`` (not started) whose frames and rejections are collected."""
+    topics = {"rgb_topic": TOPICS["rgb"], "depth_topic": TOPICS["depth"], "camera_info_topic": TOPICS["info"]}
+    frames: list[bytes] = []
+    rejected: list[str] = []
+    ingest = Ros2Ingest(Ros2Settings(**{**topics, **settings}), 2048 * 1536, frames.append, rejected.append)
+    return ingest, frames, rejected
+
+
+def _incoming(kind: str, typename: str, payload: bytes) -> Incoming:
+    topic = {"color": TOPICS["rgb"], "depth": TOPICS["depth"], "camera_info": TOPICS["info"], "odom": ODOM}[kind]
+    return Incoming(kind, keys.ros_key(0, topic, typename, keys.type_hash(typename)), payload)
+
+
+def test_a_pair_becomes_the_protocol_v1_message_of_its_frame_bytes_for_bytes():
+    frame = make_frame(t=3.5, seq=0)
+    frame = replace(frame, frame_id="c")
+    ingest, payloads, _ = _ingest(odom_topic=ODOM)
+    assert frame.odometry is not None
+    for kind, typename, payload in (
+        ("camera_info", messages.CAMERA_INFO, messages.encode_camera_info(3.5, "c", frame.camera)),
+        ("odom", messages.ODOMETRY, messages.encode_odometry(3.5, "odom", "c", frame.odometry)),
+        ("depth", messages.IMAGE, messages.encode_image(3.5, "c", frame.depth, "16UC1")),
+        ("color", messages.IMAGE, messages.encode_image(3.5, "c", frame.rgb, "rgb8")),
+    ):
+        ingest.handle(_incoming(kind, typename, payload))
+    assert len(payloads) == 1  # odometry came: the pair did not wait
+    assert payloads[0] == encode_frame(replace(frame, detections=None), "rgb8", "u16le")
+    assert frame_message(frame) == encode_frame(frame, "rgb8", "u16le")  # detections too
+
+
+def test_the_same_camera_info_is_decoded_once_and_a_distorted_one_still_refused():
+    ingest, _, rejected = _ingest()
+    frame = make_frame()
+    good = messages.encode_camera_info(1.0, "c", frame.camera)
+    info: Any = messages.typestore().deserialize_cdr(good, messages.CAMERA_INFO)
+    info.d = np.array([0.1, 0.0, 0.0, 0.0, 0.0])
+    distorted = bytes(messages.typestore().serialize_cdr(info, messages.CAMERA_INFO))
+    ingest.handle(_incoming("camera_info", messages.CAMERA_INFO, good))
+    camera = ingest.pairer.camera
+    ingest.handle(_incoming("camera_info", messages.CAMERA_INFO, messages.encode_camera_info(2.0, "c", frame.camera)))
+    assert camera is not None and ingest.pairer.camera is camera  # only the stamp differs: not decoded again
+    for _ in range(2):
+        ingest.handle(_incoming("camera_info", messages.CAMERA_INFO, distorted))
+    assert rejected == ["bad_intrinsics", "bad_intrinsics"] and ingest.pairer.camera is camera
+
+
+def test_the_raw_queue_is_bounded_by_bytes_dropping_the_oldest():
+    ingest, _, _ = _ingest(queue_bytes=2**20)
+    for i in range(5):
+        ingest.put(Incoming("color", f"k{i}", bytes(300_000)))
+    assert ingest.counts["dropped_messages"] == 2 and [item.key for item in ingest._queue] == ["k2", "k3", "k4"]
+
+
+def test_a_flood_with_all_depth_before_its_colour_maps_every_frame_like_protocol_v1():
+    """40 frames published at once, each topic in a burst: depth runs 40 frames ahead of colour (the pairer
+    used to hold 30 unpaired messages); every pair still forms, in order, with its odometry."""
+    ds = open_dataset("synthetic:room?seed=2&frames=40")
+    frames = [replace(ds.frame(i), detections=None) for i in range(len(ds))]
+    with _serving() as (node, _, robot, _):
+        for frame in frames:
+            robot.put(
+                TOPICS["info"], messages.CAMERA_INFO, messages.encode_camera_info(frame.timestamp, "c", frame.camera)
+            )
+        for frame in frames:
+            assert frame.odometry is not None
+            robot.put(ODOM, messages.ODOMETRY, messages.encode_odometry(frame.timestamp, "odom", "c", frame.odometry))
+        for frame in frames:
+            robot.put(
+                TOPICS["depth"], messages.IMAGE, messages.encode_image(frame.timestamp, "c", frame.depth, "16UC1")
+            )
+        for frame in frames:
+            robot.put(TOPICS["rgb"], messages.IMAGE, messages.encode_image(frame.timestamp, "c", frame.rgb, "rgb8"))
+        status = _wait(node, len(frames))
+        assert status["frames_processed"] == len(frames), status
+        assert status["ros2"]["unpaired_depth"] == 0 and "released_before_side" not in status["ros2"]
+        poses = np.array(node.trajectory_reply()["poses"])
+    np.testing.assert_allclose(poses, _reference_trajectory(frames), atol=1e-6)

@@ -7,6 +7,7 @@ CDR of the expected type, then the reason of the first field found wrong, with a
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
@@ -41,31 +42,68 @@ def _check_size(width: int, height: int, max_pixels: int, what: str) -> None:
         raise FrameRejected(Reason.TOO_LARGE, f"{what} {width}x{height} exceeds {max_pixels} pixels")
 
 
+@dataclass(frozen=True, eq=False)
+class RawImage:
+    """An Image or CompressedImage message as it arrived, checked but not converted: what pairing needs (its
+    ``shape``, (height, width)) and what holding it costs (``nbytes``, the message's size).
+
+    ``rows``: a raw Image's pixel rows (height x row bytes, padding cut), a view of ``raw``; None when compressed.
+    """
+
+    raw: bytes
+    shape: tuple[int, int]
+    encoding: str
+    rows: np.ndarray | None = None
+    big_endian: bool = False
+
+    @property
+    def nbytes(self) -> int:
+        return len(self.raw)
+
+
 def decode_image(raw: bytes | memoryview, max_pixels: int) -> Stamped[np.ndarray]:
     """A sensor_msgs/Image: colour (rgb8, bgr8, mono8) as HxWx3 uint8 RGB, depth (16UC1, 32FC1) as HxW uint16
     millimetres (32FC1 metres x 1000, rounded; NaN, inf and <= 0 become 0, beyond 65.535 m 65535).
     ``encoding`` of the result is the message's; row padding (``step``) and byte order are honoured."""
-    msg, rows = _checked_image(raw, max_pixels)
-    width, height, encoding = int(msg.width), int(msg.height), str(msg.encoding)
-    order = ">" if msg.is_bigendian else "<"
-    if encoding == "16UC1":
-        image = np.ascontiguousarray(rows).view(f"{order}u2").astype(np.uint16)
-    elif encoding == "32FC1":
-        metres = np.ascontiguousarray(rows).view(f"{order}f4").astype(np.float64)
-        bad = ~np.isfinite(metres) | (metres <= 0)
-        image = np.rint(np.clip(np.where(bad, 0.0, metres) * 1000.0, 0, 65535)).astype(np.uint16)
-    else:
-        pixels = rows.reshape(height, width, RAW_ENCODINGS[encoding][1])
-        if encoding == "mono8":
-            pixels = np.repeat(pixels, 3, axis=2)
-        image = np.array(pixels[..., ::-1] if encoding == "bgr8" else pixels, order="C")  # owned, writable
-    return _stamped(msg, image, encoding)
+    msg = peek_raw_image(raw, max_pixels)
+    return Stamped(msg.stamp, msg.frame_id, pixels(msg.value, max_pixels), msg.encoding)
 
 
 def peek_image(raw: bytes | memoryview, max_pixels: int) -> Stamped[tuple[int, int]]:
     """Every check of ``decode_image`` but the conversion: the value is the image's (height, width)."""
-    msg, _ = _checked_image(raw, max_pixels)
-    return _stamped(msg, (int(msg.height), int(msg.width)), str(msg.encoding))
+    msg = peek_raw_image(raw, max_pixels)
+    return Stamped(msg.stamp, msg.frame_id, msg.value.shape, msg.encoding)
+
+
+def peek_raw_image(raw: bytes | memoryview, max_pixels: int) -> Stamped[RawImage]:
+    """Every check of ``decode_image``, no pixel copied: the value keeps the message (``pixels`` converts it)."""
+    data = bytes(raw)
+    msg, rows = _checked_image(memoryview(data), max_pixels)
+    image = RawImage(data, (int(msg.height), int(msg.width)), str(msg.encoding), rows, bool(msg.is_bigendian))
+    return _stamped(msg, image, image.encoding)
+
+
+def pixels(image: RawImage, max_pixels: int, copy: bool = True) -> np.ndarray:
+    """The image of a checked message: colour as HxWx3 uint8 RGB, depth as HxW uint16 millimetres (as
+    ``decode_image`` and ``decode_compressed_image`` give them). ``copy=False``: rgb8 and little-endian 16UC1
+    without row padding come as read-only views of the message's bytes, nothing copied."""
+    if image.rows is None:
+        return decode_compressed_image(image.raw, max_pixels).value
+    (height, width), encoding, rows = image.shape, image.encoding, image.rows
+    order = ">" if image.big_endian else "<"
+    if encoding == "16UC1":
+        view = np.ascontiguousarray(rows).view(f"{order}u2").reshape(height, width)
+        return view.astype(np.uint16) if copy or order == ">" else view
+    if encoding == "32FC1":
+        metres = np.ascontiguousarray(rows).view(f"{order}f4").astype(np.float64).reshape(height, width)
+        bad = ~np.isfinite(metres) | (metres <= 0)
+        return np.rint(np.clip(np.where(bad, 0.0, metres) * 1000.0, 0, 65535)).astype(np.uint16)
+    rgb = rows.reshape(height, width, RAW_ENCODINGS[encoding][1])
+    if encoding == "mono8":
+        return np.repeat(rgb, 3, axis=2)
+    if encoding == "bgr8":
+        return np.ascontiguousarray(rgb[..., ::-1])
+    return np.array(rgb, order="C") if copy else rgb  # owned and writable, or the view
 
 
 def _checked_image(raw: bytes | memoryview, max_pixels: int) -> tuple[Any, np.ndarray]:
@@ -84,7 +122,8 @@ def _checked_image(raw: bytes | memoryview, max_pixels: int) -> tuple[Any, np.nd
         raise FrameRejected(
             Reason.SIZE_MISMATCH, f"{encoding} data has {len(data)} bytes, step x height = {step * height}"
         )
-    return msg, data.reshape(height, step)[:, :row]
+    rows = data.reshape(height, step)
+    return msg, rows if step == row else rows[:, :row]
 
 
 def peek_compressed_image(raw: bytes | memoryview, max_pixels: int) -> Stamped[tuple[int, int]]:
@@ -93,6 +132,12 @@ def peek_compressed_image(raw: bytes | memoryview, max_pixels: int) -> Stamped[t
     msg, kind = _compressed(raw)
     found = _probe(msg.data, kind, max_pixels)
     return _stamped(msg, (found[0], found[1]), kind)
+
+
+def peek_raw_compressed_image(raw: bytes | memoryview, max_pixels: int) -> Stamped[RawImage]:
+    """``peek_compressed_image`` keeping the message: ``pixels`` decodes it."""
+    found = peek_compressed_image(raw, max_pixels)
+    return Stamped(found.stamp, found.frame_id, RawImage(bytes(raw), found.value, found.encoding), found.encoding)
 
 
 def decode_compressed_image(raw: bytes | memoryview, max_pixels: int) -> Stamped[np.ndarray]:

@@ -22,6 +22,7 @@ from sources.ros2.cdr import (
     typestore,
 )
 from sources.ros2.decoders import (
+    RawImage,
     decode_camera_info,
     decode_compressed_image,
     decode_detections,
@@ -29,6 +30,9 @@ from sources.ros2.decoders import (
     decode_odometry,
     peek_compressed_image,
     peek_image,
+    peek_raw_compressed_image,
+    peek_raw_image,
+    pixels,
 )
 from sources.ros2.encoders import (
     encode_camera_info,
@@ -50,6 +54,7 @@ __all__ = [
     "ODOMETRY",
     "PATH",
     "POSE_STAMPED",
+    "RawImage",
     "Stamped",
     "decode_camera_info",
     "decode_compressed_image",
@@ -67,6 +72,9 @@ __all__ = [
     "from_stamp",
     "peek_compressed_image",
     "peek_image",
+    "peek_raw_compressed_image",
+    "peek_raw_image",
+    "pixels",
     "stamp_ns",
     "to_stamp",
     "typestore",
