@@ -44,6 +44,11 @@ def encode_frame(frame: Frame, color_encoding: str = "jpeg", depth_encoding: str
     """Serialise a frame as a protocol-v1 message."""
     color = _encode_color(frame.rgb, color_encoding)
     depth = _encode_depth(frame.depth, depth_encoding)
+    return frame_head(frame, (color_encoding, len(color)), (depth_encoding, len(depth))) + color + depth
+
+
+def frame_head(frame: Frame, color: tuple[str, int], depth: tuple[str, int]) -> bytes:
+    """A protocol-v1 message up to its images: preamble and header, with the images' (encoding, size)."""
     h, w = frame.depth.shape
     header: dict[str, Any] = {
         "version": VERSION,
@@ -51,20 +56,15 @@ def encode_frame(frame: Frame, color_encoding: str = "jpeg", depth_encoding: str
         "seq": frame.seq,
         "frame_id": frame.frame_id,
         "camera": camera_to_json(frame.camera),
-        "color": {
-            "encoding": color_encoding,
-            "width": frame.rgb.shape[1],
-            "height": frame.rgb.shape[0],
-            "size": len(color),
-        },
-        "depth": {"encoding": depth_encoding, "width": w, "height": h, "size": len(depth)},
+        "color": {"encoding": color[0], "width": frame.rgb.shape[1], "height": frame.rgb.shape[0], "size": color[1]},
+        "depth": {"encoding": depth[0], "width": w, "height": h, "size": depth[1]},
         "odometry": None if frame.odometry is None else [float(v) for v in pose_to_tum(frame.odometry)],
         "detections": None
         if frame.detections is None
         else [{"label": d.label, "score": float(d.score), "box": [float(v) for v in d.box]} for d in frame.detections],
     }
     head = json.dumps(header, separators=(",", ":")).encode()
-    return PREAMBLE.pack(MAGIC, VERSION, 0, len(head)) + head + color + depth
+    return PREAMBLE.pack(MAGIC, VERSION, 0, len(head)) + head
 
 
 def camera_to_json(camera: CameraModel) -> dict[str, Any]:

@@ -12,7 +12,6 @@ one that differs from ROS 2 Jazzy's is logged once.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import threading
 from collections import Counter, deque
@@ -23,9 +22,8 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from graph.geometry import pose_to_tum
 from perception.frame import Frame, FrameRejected, Reason
-from service.protocol import MAGIC, PREAMBLE, VERSION, camera_to_json
+from service.protocol import frame_head
 from service.ros2_settings import Ros2Settings
 from sources.ros2 import keys, messages
 from sources.ros2.pairing import FramePairer, Pair
@@ -231,22 +229,9 @@ def frame_message(frame: Frame) -> bytes:
     """``protocol.encode_frame(frame, "rgb8", "u16le")`` with each image copied once, straight into the message
     (the images may be views of the CDR bytes they came in)."""
     rgb, depth = frame.rgb, frame.depth
-    header: dict[str, Any] = {
-        "version": VERSION,
-        "timestamp": frame.timestamp,
-        "seq": frame.seq,
-        "frame_id": frame.frame_id,
-        "camera": camera_to_json(frame.camera),
-        "color": {"encoding": "rgb8", "width": rgb.shape[1], "height": rgb.shape[0], "size": rgb.size},
-        "depth": {"encoding": "u16le", "width": depth.shape[1], "height": depth.shape[0], "size": 2 * depth.size},
-        "odometry": None if frame.odometry is None else [float(v) for v in pose_to_tum(frame.odometry)],
-        "detections": None
-        if frame.detections is None
-        else [{"label": d.label, "score": float(d.score), "box": [float(v) for v in d.box]} for d in frame.detections],
-    }
-    head = json.dumps(header, separators=(",", ":")).encode()
+    head = frame_head(frame, ("rgb8", rgb.size), ("u16le", 2 * depth.size))
     images = (np.ascontiguousarray(rgb, dtype=np.uint8).data, np.ascontiguousarray(depth, dtype="<u2").data)
-    return b"".join((PREAMBLE.pack(MAGIC, VERSION, 0, len(head)), head, *images))
+    return b"".join((head, *images))
 
 
 def _expect(typename: str, expected: str) -> None:
