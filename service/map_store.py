@@ -26,12 +26,12 @@ import sqlite3
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from loops.archive import ColdLog
-from service.store_rows import StoreError, blob, join, kind_of, tail, token, unblob
+from service.store_rows import StoreError, blob, join, kind_of, owner, tail, unblob
 
 log = logging.getLogger(__name__)
 
@@ -60,13 +60,14 @@ first; a store without ``meta.schema_version`` is version 0, an empty file)."""
 @dataclass
 class LogState:
     """What the store has of one log: its generation, rows written, kind, level-tagged chunks (first, count,
-    level) of the current generation, and the identity of the container written from."""
+    level) of the current generation, and the container written from (held, so that no new container can
+    take its place in memory and pass for it)."""
 
     generation: int
     written: int
     kind: str
     chunks: list[tuple[int, int, int]] | None = field(default_factory=list)  # None: go on in a new generation
-    owner: int | None = None
+    owner: Any = None
 
 
 @dataclass(frozen=True)
@@ -168,7 +169,7 @@ class MapStore:
         ``logs`` are the live containers (``slam.parts``): only their new rows are encoded, so the work is the
         new rows', not the map's. Raises OSError / sqlite3.Error when the disk refuses (nothing is written)."""
         t0 = time.perf_counter()
-        before = {name: LogState(**vars(s)) for name, s in self.logs.items()}
+        before = {n: replace(s, chunks=None if s.chunks is None else list(s.chunks)) for n, s in self.logs.items()}
         try:
             with self.transaction():
                 lengths = {name: self._write_log(name, rows) for name, rows in logs.items()}
@@ -193,12 +194,14 @@ class MapStore:
     def _write_log(self, name: str, rows: Any) -> tuple[int, int, str]:
         state = self.logs.get(name)
         n, kind = len(rows), kind_of(rows)
-        if state is None or state.chunks is None or state.owner not in (None, token(rows)) or n < state.written:
+        held = owner(rows)
+        replaced = state is not None and state.owner is not None and state.owner is not held
+        if state is None or state.chunks is None or replaced or n < state.written:
             if state is not None:  # a new container (or the log of an older checkpoint): written whole
                 self._replaced.add((name, state.generation))
             generation = 0 if state is None else self._next_generation(name, state.generation)
             state = self.logs[name] = LogState(generation, 0, kind)
-        state.owner = token(rows)
+        state.owner = held
         if n > state.written:
             if name in self.cold:
                 self._write_cold(name, state, tail(rows, state.written, n))

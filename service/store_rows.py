@@ -42,10 +42,9 @@ def tail(rows: Any, start: int, stop: int | None = None) -> Any:
     return rows[start:stop] if isinstance(rows, np.ndarray) else list(rows[start:stop])
 
 
-def token(rows: Any) -> int:
-    """Identity of a log's container: an array view counts as the array it views (growing replaces it)."""
-    base = rows.base if isinstance(rows, np.ndarray) and rows.base is not None else rows
-    return id(base)
+def owner(rows: Any) -> Any:
+    """The container a log's rows live in: an array view's is the array it views (growing replaces it)."""
+    return rows.base if isinstance(rows, np.ndarray) and rows.base is not None else rows
 
 
 def join(kind: str, pieces: list[Any], length: int) -> Any:

@@ -309,3 +309,34 @@ def test_chunks_merge_up_to_the_top_level_and_read_back_whole(tmp_path):
     assert generations == [(1,)]
     loaded = MapStore(tmp_path / "map.db", "robot1").load()
     assert loaded is not None and loaded.logs["rows"] == [-1, -2]
+
+
+def test_a_failed_checkpoint_leaves_the_writer_as_before_and_the_next_one_writes_its_rows(tmp_path):
+    """A transaction that fails half-way (the disk full) is rolled back; the writer's books of chunks too, so
+    the next checkpoint writes every row since the last good one, merges included."""
+    store = MapStore(tmp_path / "map.db", "robot1")
+    rows: list[bytes] = []
+    for i in range(20):
+        rows.append(bytes(100))
+        store.checkpoint({}, {"rows": rows}, i, i)
+    pages = store.db.execute("PRAGMA page_count").fetchone()[0]
+    store.db.execute(f"PRAGMA max_page_count = {pages}")
+    rows.extend(bytes(4000) for _ in range(12))  # completes 16 chunks: a merge in the failing transaction
+    with pytest.raises(sqlite3.Error):
+        store.checkpoint({}, {"rows": rows}, 20, 20)
+    store.db.execute("PRAGMA max_page_count = 1073741823")
+    for i in range(21, 300):  # merges of every level on the books as they were before the failure
+        store.checkpoint({}, {"rows": rows}, i, i)
+        rows.append(bytes(10))
+    loaded = MapStore(tmp_path / "map.db", "robot1").load()
+    assert loaded is not None and loaded.logs["rows"] == rows[:-1]
+
+
+def test_a_replaced_container_is_written_whole_even_where_the_old_one_lived(tmp_path):
+    """The writer holds the container it wrote from: a new one (a window roll's array) never passes for it,
+    even allocated where a freed one was."""
+    store = MapStore(tmp_path / "map.db", "robot1")
+    for i in range(50):  # every checkpoint a new array, as a roll gives; the last one freed before it is made
+        store.checkpoint({}, {"fixed": np.full((i + 1, 2), float(i))}, i, i)
+    loaded = MapStore(tmp_path / "map.db", "robot1").load()
+    assert loaded is not None and np.array_equal(loaded.logs["fixed"], np.full((50, 2), 49.0))
