@@ -150,11 +150,14 @@ class ObjectLandmarks:
                 log.error("retracting %d object landmark measurements failed: %s", len(indices), exc)
 
     def state(self) -> dict:
-        return {
-            "measurements": self.measurements,
-            "assigned": self.assigned,
-            "track_landmark": self.track_landmark,
-            "failures": self.failures,
+        small, logs = self.parts()
+        return {**small, **logs}
+
+    def parts(self) -> tuple[dict, dict]:
+        """``state()`` in two parts: the assignments (rewritten as tracks move between landmarks), and the
+        measurements, an append-only log (one per keyframe and track, live)."""
+        return {"assigned": self.assigned, "track_landmark": self.track_landmark, "failures": self.failures}, {
+            "measurements": self.measurements
         }
 
     def restore(self, state: dict) -> None:

@@ -317,8 +317,7 @@ class WindowedGraph(Keyframes, Landmarks):
             "settings": window_state(self.settings),
             "start": self.start,
             "landmarks": np.array(sorted(books.landmarks), np.int64),
-            "removed": np.array(sorted(books.removed), np.int64),
-        }
+        }  # the removed factors: those the update log removed (``joined``)
         small: dict[str, Any] = {
             "noise": noise_state(self.settings),
             "factorization": self.factorization,

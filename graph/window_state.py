@@ -21,6 +21,8 @@ def joined(small: dict[str, Any], logs: dict[str, Any]) -> dict[str, Any]:
         "updates": list(logs["updates"]),
         "window": dict(small["window"]),
     }
+    removed = sorted({int(i) for entry in state["updates"] for i in entry[2]})  # what ``Books.record`` removed
+    state["window"]["removed"] = np.array(removed, np.int64)
     if "fixed" in logs:
         state["window"]["fixed"] = np.array(logs["fixed"], float).reshape(-1, 4, 4)
     if "estimate" not in state:  # rebuilt: the window's own state checks its replay; the fixed past is as saved

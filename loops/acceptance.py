@@ -39,6 +39,8 @@ class LoopAcceptance:
     settings: LoopSettings
     records: list[LoopRecord] = field(default_factory=list)
     accepted: dict[int, AcceptedLoop] = field(default_factory=dict)  # by factor index
+    accepted_log: list[tuple[int, AcceptedLoop]] = field(default_factory=list)  # every acceptance, in order
+    retracted: list[int] = field(default_factory=list)  # the factors of the retracted ones, in order
     joined: Callable[[int, int], bool] | None = None
     """Whether two keyframes' map segments are already joined (``slam.segments``); a verified loop between
     segments that are not is accepted without the gate: their relative estimate is only a gauge's guess."""
@@ -79,6 +81,7 @@ class LoopAcceptance:
         sigma_m, sigma_deg = max(s.sigma_floor_m, rel.sigma_m), max(s.sigma_floor_deg, rel.sigma_deg)
         factor = self.graph.add_loop(a, b, rel.T_a_b, sigma_m, sigma_deg)
         self.accepted[factor] = AcceptedLoop(a, b, rel.T_a_b)
+        self.accepted_log.append((factor, self.accepted[factor]))
         record.accepted, record.reason, record.factor = True, "joins_segments" if joining else "verified", factor
         log.info("loop closure accepted: keyframe %d <-> %d (%d inliers)", a, b, rel.inliers)
         return record
@@ -96,6 +99,7 @@ class LoopAcceptance:
         self.graph.remove_factors(bad)
         for factor in bad:
             del self.accepted[factor]
+            self.retracted.append(factor)
             for r in self.records:
                 if r.factor == factor:
                     r.accepted, r.reason = False, "retracted_inconsistent"

@@ -69,22 +69,22 @@ class LoopCloser:
         return joined(*self.parts())
 
     def parts(self) -> tuple[dict[str, Any], dict[str, Any]]:
-        """``state()`` in two parts: the accepted loops with every record that was ever accepted (a retraction
-        changes those), and the append-only logs (live): the records, the keyframe entries and the places."""
-        small = {
-            "accepted": dict(self.accepted),
-            "record_fixes": {i: r for i, r in enumerate(self.records) if r.factor is not None},
-        }
-        logs = {"records": self.records, "keyframe_stubs": self.keyframes.stubs, **self.places.logs()}
-        return small, {**logs, "keyframe_features": self.keyframes.features}
+        """``state()`` in two parts: nothing small, and the append-only logs (live): the records (a retraction
+        changes a record's verdict: ``joined`` applies the retractions log to them), the acceptances and
+        retractions, the keyframe entries and the places."""
+        a = self.acceptance
+        logs = {"records": a.records, "accepted_log": a.accepted_log, "retracted": a.retracted, **self.places.logs()}
+        return {}, {**logs, "keyframe_stubs": self.keyframes.stubs, "keyframe_features": self.keyframes.features}
 
     def restore(self, state: dict[str, Any]) -> None:
         """Continue from ``state`` (also as release 0.1.0 saved it: records as dicts, loops as tuples)."""
         records = state["records"]
         self.acceptance.records = [r if isinstance(r, LoopRecord) else LoopRecord.from_json(r) for r in records]
-        self.acceptance.accepted = {
-            f: v if isinstance(v, AcceptedLoop) else AcceptedLoop(*v) for f, v in state["accepted"].items()
-        }
+        a = self.acceptance
+        a.accepted = {f: v if isinstance(v, AcceptedLoop) else AcceptedLoop(*v) for f, v in state["accepted"].items()}
+        retracted = [r.factor for r in a.records if r.reason == "retracted_inconsistent" and r.factor is not None]
+        a.accepted_log = list(state.get("accepted_log", a.accepted.items()))  # not saved before the map store
+        a.retracted = list(state.get("retracted", retracted))
         self.places.restore(state["places"])
         saved = state["keyframes"]
         self.keyframes = saved if isinstance(saved, KeyframeArchive) else KeyframeArchive.of_entries(saved)
@@ -148,13 +148,17 @@ class LoopCloser:
 def joined(small: dict[str, Any], logs: dict[str, Any], materialize: bool = True) -> dict[str, Any]:
     """``LoopCloser.state()`` of its parts (logs as sequences); ``materialize``: the keyframes as a list of
     entries with their features (plain data), else as a ``KeyframeArchive`` that reads spilled ones on demand."""
-    records = list(logs["records"])
-    for i, record in small["record_fixes"].items():
-        records[i] = record
+    retracted = set(logs["retracted"])
+    records = [
+        replace(r, accepted=False, reason="retracted_inconsistent") if r.accepted and r.factor in retracted else r
+        for r in logs["records"]
+    ]
     keyframes = KeyframeArchive(logs["keyframe_stubs"], ColdLog.of(logs["keyframe_features"]))
     return {
         "records": records,
-        "accepted": small["accepted"],
+        "accepted": {f: loop for f, loop in logs["accepted_log"] if f not in retracted},
+        "accepted_log": list(logs["accepted_log"]),
+        "retracted": list(logs["retracted"]),
         "places": PlaceIndex.joined(logs),
         "keyframes": keyframes.entries() if materialize else keyframes,
     }

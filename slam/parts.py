@@ -65,7 +65,7 @@ def core_parts(core: SlamCore) -> CoreParts:
         "detections_by_class": dict(core.detections_by_class),
         "objects": None,
         "object_map_version": core.object_map_version,
-        "landmarks": None if core.landmarks is None else core.landmarks.state(),
+        "landmarks": None,
         "reposes": core.reposes,
         "loops": None,
         "proposer": None if core.proposer is None else core.proposer.state(),
@@ -79,6 +79,9 @@ def core_parts(core: SlamCore) -> CoreParts:
         "segments.keyframe_segment": core.segments.keyframe_segment,
         **_prefixed("graph", graph_logs),
     }
+    if core.landmarks is not None:
+        small["landmarks"], landmark_logs = core.landmarks.parts()
+        logs.update(_prefixed("landmarks", landmark_logs))
     if core.objects is not None:
         small["objects"], object_logs = core.objects.parts()
         logs.update(_prefixed("objects", object_logs))
@@ -122,6 +125,8 @@ def assemble(parts: CoreParts, materialize: bool = True) -> dict[str, Any]:
     }
     if small["objects"] is not None:
         state["objects"] = objects_joined(small["objects"], _unprefixed("objects", logs))
+    if small["landmarks"] is not None:
+        state["landmarks"] = {**small["landmarks"], "measurements": dict(logs["landmarks.measurements"])}
     if small["loops"] is not None:
         state["loops"] = loops_joined(small["loops"], _unprefixed("loops", logs), materialize)
     return state
