@@ -29,6 +29,7 @@ from service.cli_ros2 import (
     ros_topics,
 )
 from service.config import ConfigError, Settings, dump_defaults, load_settings
+from service.viewer_cli import NoRrdOpt, RerunOpt, RerunWebOpt, RrdOpt, viewer_overrides
 from sources import DatasetError
 
 app = typer.Typer(
@@ -125,13 +126,17 @@ def serve(
     ros_domain_id: DomainOpt = None,
     odom_topic: OdomTopicOpt = None,
     detections_topic: DetectionsTopicOpt = None,
+    rerun: RerunOpt = False,
+    rerun_web: RerunWebOpt = None,
+    rrd: RrdOpt = None,
 ) -> None:
     """Run the long-lived mapping service (until SIGINT / SIGTERM); with --ros2 it also takes ROS 2 topics."""
     from service.run import serve as serve_forever
 
     topics = (rgb_topic, depth_topic, camera_info_topic, ros_domain_id, odom_topic, detections_topic)
-    ros = ros2_overrides(ros2, *topics)
-    settings = _settings(config, robot, connect, listen, mode, state_dir, zenoh_config, {"ros2": ros} if ros else None)
+    extra = {"ros2": ros} if (ros := ros2_overrides(ros2, *topics)) else {}
+    extra |= viewer_overrides(rerun, rerun_web, rrd)
+    settings = _settings(config, robot, connect, listen, mode, state_dir, zenoh_config, extra)
     code = serve_forever(_with_lc(settings, lc_source, lc_policy))
     if code:  # some outputs could not be written on shutdown (logged one line each)
         sys.exit(code)
@@ -281,6 +286,10 @@ def run(
     camera_info_topic: InfoTopicOpt = None,
     odom_topic: OdomTopicOpt = None,
     detections_topic: DetectionsTopicOpt = None,
+    rerun: RerunOpt = False,
+    rerun_web: RerunWebOpt = None,
+    rrd: RrdOpt = None,
+    no_rrd: NoRrdOpt = False,
 ) -> None:
     """Run the whole pipeline on one dataset (or a rosbag2 recording, with the topic flags) over an embedded zenoh
     session; write the outputs."""
@@ -298,7 +307,7 @@ def run(
         summary = run_dataset(
             spec,
             out,
-            _with_lc(_settings(config), lc_source, lc_policy),
+            _with_lc(_settings(config, extra=viewer_overrides(rerun, rerun_web, rrd, no_rrd)), lc_source, lc_policy),
             max_frames,
             _camera_overrides(depth_scale=depth_scale, fx=fx, fy=fy, cx=cx, cy=cy),
         )

@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 from pydantic_settings import (
     BaseSettings,
@@ -87,6 +87,27 @@ class PersistenceSettings(BaseModel):
     )
 
 
+class ViewerSettings(BaseModel):
+    """The Rerun viewer (``service.viewer``): a recording of every ``run``, a native or a web viewer, live."""
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    enabled: bool = Field(True, description="run records its map into OUT/map.rrd (run --no-rrd: off)")
+    rrd: Path | None = Field(None, description="record into this .rrd file (--rrd); run: instead of OUT/map.rrd")
+    native: bool = Field(False, description="--rerun: stream to the native viewer at `connect`, started if none is")
+    connect: str = Field("rerun+http://127.0.0.1:9876/proxy", description="where --rerun finds the native viewer")
+    web_port: int | None = Field(None, ge=1, le=65535, description="--rerun-web: web viewer on 127.0.0.1:PORT")
+    max_rate_hz: float = Field(
+        10.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="updates sent to the viewer per second at most (frames between "
+        "are not shown; the map has them all)",
+    )
+    images: bool = Field(True, description="colour, depth and detection boxes at keyframes (protocol-v1 input)")
+    memory_limit: str = Field("512MiB", description="the web viewer server's buffer for browsers that join late")
+
+
 class Settings(BaseSettings):
     """All of objslam's configuration."""
 
@@ -105,6 +126,7 @@ class Settings(BaseSettings):
     persistence: PersistenceSettings = Field(default_factory=PersistenceSettings)
     camera: CameraDefaults = Field(default_factory=CameraDefaults)
     ros2: Ros2Settings = Field(default_factory=Ros2Settings)
+    viewer: ViewerSettings = Field(default_factory=ViewerSettings)
 
     @model_validator(mode="before")
     @classmethod

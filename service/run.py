@@ -7,14 +7,18 @@ import signal
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from service.config import Settings
 from service.node import ServiceNode
 from service.outputs import EXIT_OUTPUTS_FAILED, OutputsError, check_output_dir, run_summary, write_outputs
 from service.replay import Replayer, frame_publisher
+from service.viewer_cli import run_rrd, viewer_wanted
 from service.zenoh_session import open_session
 from sources import Dataset, open_dataset
+
+if TYPE_CHECKING:
+    from service.viewer_feed import ViewerFeed
 
 log = logging.getLogger(__name__)
 
@@ -39,8 +43,14 @@ def run_dataset(
     settings = settings.model_copy(update={"state_dir": None})  # a run starts a new map and keeps no snapshots
     session = open_session(settings.zenoh, "server", embedded=True)
     node = ServiceNode(settings, session)
+    viewer: ViewerFeed | None = None
     try:
         node.start()
+        rrd = run_rrd(settings, out)  # OUT/map.rrd by default
+        if viewer_wanted(settings.viewer, rrd):
+            from service.viewer_feed import open_viewer  # rerun only when wanted
+
+            viewer = open_viewer(node, session, settings.viewer, rrd, dataset.camera, dataset.ground_truth)
         pub = frame_publisher(session, f"{node.prefix}/rgbd")
         window = max(1, min(8, node.queue.capacity // 2))
         published = 0
@@ -61,6 +71,8 @@ def run_dataset(
         elapsed = time.monotonic() - started
         pub.undeclare()
         node.finish()
+        if viewer is not None:
+            viewer.close()
         status = node.status()
         summary = run_summary(dataset.name, result.frames, elapsed, status)
         traj, odom = node.trajectories()
@@ -69,6 +81,8 @@ def run_dataset(
             out, traj, odom, summary, dataset.ground_truth, objects, node.loops_reply()["loops"], node.core.cloud()
         )
     finally:
+        if viewer is not None:
+            viewer.close()
         node.stop()
         session.close()
 
@@ -97,10 +111,17 @@ def serve(settings: Settings, stop: threading.Event | None = None) -> int:
         bridge = Ros2Bridge(node)
         bridge.start(session)
     log.info("objslam serve: robot %s on %s, listening %s", settings.robot, node.prefix, settings.zenoh.listen)
+    viewer: ViewerFeed | None = None
     try:
+        if viewer_wanted(settings.viewer, settings.viewer.rrd):
+            from service.viewer_feed import open_viewer  # rerun only when wanted
+
+            viewer = open_viewer(node, session, settings.viewer, settings.viewer.rrd)
         while not stop.wait(0.5):
             pass
     finally:
+        if viewer is not None:
+            viewer.close()
         if bridge is not None:
             bridge.stop()
         code = _shut_down(node, settings.state_dir)

@@ -1,0 +1,162 @@
+"""The Rerun viewer: the ``.rrd`` every ``run`` records, what it holds, and a viewer that never slows the map."""
+
+from __future__ import annotations
+
+import subprocess
+import threading
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rerun.chunk import RrdReader
+from typer.testing import CliRunner
+
+import service.viewer_feed
+from service.cli import app
+from service.config import load_settings
+from service.run import run_dataset
+from service.viewer import ViewerSink, class_colour, decimate, ellipsoid
+from service.viewer_cli import viewer_overrides
+from service.viewer_connect import native_viewer, open_outlets, rerun_executable
+from tests.conftest import free_port
+
+pytestmark = pytest.mark.integration
+SCENE = "synthetic:room?seed=0&frames=40&width=160&height=120"
+SCENE_ENTITIES = {
+    "/world/camera",
+    "/world/camera/rgb",
+    "/world/camera/depth",
+    "/world/camera/detections",
+    "/world/trajectory",
+    "/world/odometry",
+    "/world/ground_truth",
+    "/world/objects",
+    "/world/landmarks",
+    "/world/loops/accepted",
+    "/world/loops/rejected",
+    "/world/map_points",
+}
+
+
+def _settings(**viewer):
+    return load_settings(None, {"detector": {"enabled": False}, "viewer": viewer})
+
+
+def read_rrd(path: Path) -> tuple[dict[str, set[str]], dict[str, list]]:
+    """Entity -> component and timeline columns; and ``entity:column`` -> the values logged, oldest first."""
+    columns: dict[str, set[str]] = defaultdict(set)
+    values: dict[str, list] = defaultdict(list)
+    for chunk in RrdReader(path).stream():
+        batch = chunk.to_record_batch()
+        columns[chunk.entity_path] |= set(batch.schema.names)
+        for name in batch.schema.names:
+            values[f"{chunk.entity_path}:{name}"] += batch.column(name).to_pylist()
+    return columns, values
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("run")
+    summary = run_dataset(SCENE, out, _settings(), progress=False)
+    return out, summary
+
+
+def test_run_writes_a_map_rrd_that_rerun_verifies(recorded):
+    out, summary = recorded
+    assert summary["frames_processed"] == 40
+    result = subprocess.run([rerun_executable(), "rrd", "verify", str(out / "map.rrd")], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr + result.stdout
+
+
+def test_the_recording_holds_camera_trajectories_objects_loops_and_timelines(recorded):
+    out, _ = recorded
+    columns, values = read_rrd(out / "map.rrd")
+    assert set(columns) >= SCENE_ENTITIES, SCENE_ENTITIES - set(columns)
+    assert {"Transform3D:translation", "Pinhole:image_from_camera", "frame", "sensor_time"} <= columns["/world/camera"]
+    assert "EncodedImage:blob" in columns["/world/camera/rgb"]
+    assert "EncodedDepthImage:blob" in columns["/world/camera/depth"]
+    assert values["/world/camera/detections:Boxes2D:labels"][-1], "the keyframe's detection boxes"
+    frames = [f for f in values["/world/camera:frame"] if f is not None]
+    assert frames == sorted(frames) and frames[-1] == 40  # the last update is the map after the 40th frame
+    labels = values["/world/objects:Ellipsoids3D:labels"][-1]
+    objects = __import__("json").loads((out / "objects.json").read_text())
+    assert len(labels) == len(objects) > 0
+    assert {f"{o['label']} #{o['id']} ({o['n_observations']} obs)" for o in objects} == set(labels)
+    colours = values["/world/objects:Ellipsoids3D:colors"][-1]
+    assert len(set(colours)) > 1  # coloured by class
+    strip = values["/world/trajectory:LineStrips3D:strips"][-1][0]
+    tum = np.loadtxt(out / "trajectory.tum")
+    assert np.allclose(np.array(strip)[-1], tum[-1, 1:4], atol=1e-4)  # the final, optimised trajectory
+    assert len(values["/world/ground_truth:LineStrips3D:strips"][-1][0]) == 40
+
+
+def test_a_stalled_sink_leaves_the_pipeline_at_full_speed(tmp_path, monkeypatch):
+    """A viewer that never returns from its first log call: every frame is processed, as fast as without a
+    viewer (generous bound), and the run ends; the viewer got one update, the map all 60 frames."""
+    spec = SCENE.replace("frames=40", "frames=60")
+    plain = run_dataset(spec, tmp_path / "plain", _settings(enabled=False), progress=False)
+    assert not (tmp_path / "plain" / "map.rrd").exists()
+
+    release, calls = threading.Event(), []
+
+    def stalled_log(self, update):
+        calls.append(update.frame)
+        release.wait(60.0)
+
+    monkeypatch.setattr(ViewerSink, "log", stalled_log)
+    monkeypatch.setattr(service.viewer_feed, "CLOSE_TIMEOUT_S", 0.2)
+    try:
+        stalled = run_dataset(spec, tmp_path / "stalled", _settings(max_rate_hz=50.0), progress=False)
+    finally:
+        release.set()
+    assert plain["frames_processed"] == stalled["frames_processed"] == 60
+    assert stalled["frames_dropped"] == plain["frames_dropped"] == 0
+    assert len(calls) == 1  # the feed stalled in its first update and sent nothing more
+    assert stalled["throughput_fps"] >= 0.5 * plain["throughput_fps"]
+    assert (tmp_path / "stalled" / "map.rrd").is_file()  # closed all the same
+
+
+def test_run_accepts_the_viewer_flags_and_goes_on_without_a_native_viewer(tmp_path, monkeypatch):
+    """--rerun with no viewer listening and no display: a warning, the run and its --rrd recording complete."""
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.setenv("OBJSLAM_VIEWER__CONNECT", f"rerun+http://127.0.0.1:{free_port()}/proxy")
+    rrd = tmp_path / "chosen.rrd"
+    args = ["run", SCENE.replace("frames=40", "frames=8"), "--out", str(tmp_path / "out"), "--rerun", "--rrd", str(rrd)]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert rrd.is_file() and not (tmp_path / "out" / "map.rrd").exists()
+    result = CliRunner().invoke(app, ["serve", "--help"])
+    assert all(flag in result.output for flag in ("--rerun", "--rerun-web", "--rrd"))
+
+
+def test_no_native_viewer_and_no_display_is_no_sink():
+    url = f"rerun+http://127.0.0.1:{free_port()}/proxy"
+    assert native_viewer(url) is None or pytest.skip("a display is available: a viewer would be started")
+    settings = _settings(native=True, connect=url).viewer
+    assert open_outlets(settings, None, "r1") is None
+
+
+def test_the_flags_set_the_viewer_settings():
+    s = load_settings(None, viewer_overrides(True, 9090, Path("m.rrd"), no_rrd=True))
+    assert (s.viewer.native, s.viewer.web_port, s.viewer.rrd, s.viewer.enabled) == (True, 9090, Path("m.rrd"), False)
+    assert load_settings(None, viewer_overrides(False, None, None)).viewer == load_settings().viewer
+
+
+def test_an_ellipsoid_reproduces_its_covariance():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(3, 3))
+    cov = a @ a.T + 0.01 * np.eye(3)
+    half, quat = ellipsoid(cov)
+    from scipy.spatial.transform import Rotation
+
+    r = Rotation.from_quat(quat).as_matrix()
+    assert np.allclose(r @ np.diag((half / 1.5) ** 2) @ r.T, cov)
+
+
+def test_decimation_keeps_the_ends_and_colours_are_fixed_per_class():
+    pts = np.arange(30000).reshape(-1, 3)
+    d = decimate(pts, 2000)
+    assert len(d) == 2000 and (d[0] == pts[0]).all() and (d[-1] == pts[-1]).all()
+    assert class_colour("chair") == class_colour("chair") and len({class_colour(c) for c in "abcdefgh"}) > 3
