@@ -90,16 +90,27 @@ class Books:
     def columns(self) -> dict[str, Any]:
         """The replay log's fields of a graph's state: ``factors`` in columns (removed ones included), the
         initial guesses of keyframes and landmarks in insertion order, the update log, and the landmarks still
-        waiting to be observable with their held-back observations."""
+        waiting to be observable with their held-back observations (``joined_columns`` of ``parts``)."""
+        return joined_columns(*self.parts())
+
+    def parts(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        """``columns()`` in two parts: the observations still waiting, and the append-only logs (live, not
+        copied): the factor records, the guesses and the update log."""
         pending = [r for observations in self.pending.values() for r in observations]
-        return {
-            "factors": to_columns(self.factors),
-            "initial": np.array(self.initial).reshape(-1, 4, 4),
-            "landmark_initial": np.array(self.landmark_initial, float).reshape(-1, 3),
-            "updates": list(self.log),
-            "pending_landmarks": np.array(list(self.pending), np.int64),
-            "pending": to_columns(pending),
-        }
+        small = {"pending_landmarks": np.array(list(self.pending), np.int64), "pending": to_columns(pending)}
+        logs = {"factors": self.factors, "initial": self.initial, "landmark_initial": self.landmark_initial}
+        return small, {**logs, "updates": self.log}
+
+
+def joined_columns(small: dict[str, Any], logs: dict[str, Any]) -> dict[str, Any]:
+    """``Books.columns()`` of its parts (logs as any sequences)."""
+    return {
+        **small,
+        "factors": to_columns(list(logs["factors"])),
+        "initial": np.array(list(logs["initial"]), float).reshape(-1, 4, 4),
+        "landmark_initial": np.array(list(logs["landmark_initial"]), float).reshape(-1, 3),
+        "updates": list(logs["updates"]),
+    }
 
 
 class GraphBase(ABC):

@@ -36,15 +36,15 @@ import numpy as np
 
 from graph.books import Books, UpdateResult
 from graph.errors import SolverError
-from graph.factors import FactorRecord, from_columns, to_columns
+from graph.factors import FactorRecord, from_columns
 from graph.keyframes import Keyframes
 from graph.landmarks import Landmarks
 from graph.pose_graph import PoseGraph
-from graph.settings import GraphSettings, noise_state, window_state, with_window
+from graph.settings import GraphSettings, with_window
 from graph.solver_messages import Replay, Update
 from graph.solver_proxy import GlobalSolver
 from graph.window_factors import Estimate, FactorIndex, anchored, landmarks_of, localize, window_factors
-from graph.window_state import joined
+from graph.window_state import joined, window_parts
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +67,7 @@ class WindowedGraph(Keyframes, Landmarks):
         self.local = PoseGraph(settings)
         self.start = 0  # first keyframe in the window; the ones before are fixed
         self._to_local: dict[int, int] = {}  # factor index -> the window's factor index
+        self._local_pairs: list[tuple[int, int]] = []  # the same, as added (a log: removals are the books')
         self._index = FactorIndex()  # the factors on each keyframe and landmark
         self._fixed = np.zeros((0, 4, 4))  # keyframes before ``start``
         self._frozen: dict[int, np.ndarray] = {}  # landmarks in the graph but not in the window
@@ -161,6 +162,7 @@ class WindowedGraph(Keyframes, Landmarks):
         )
         for i, li in zip(owners, result.factor_indices, strict=True):
             self._to_local[i] = li
+            self._local_pairs.append((i, li))
         for i in remove:
             self._to_local.pop(i, None)
         for j in revived:
@@ -240,7 +242,7 @@ class WindowedGraph(Keyframes, Landmarks):
     def _rebuild(self, start: int, estimate: np.ndarray, landmarks: dict[int, np.ndarray]) -> bool:
         """A new window from ``start`` at the given estimate: one batch update of its keyframes and landmarks.
         False (and the window as it was) if iSAM2 rejects it."""
-        old = self.start, self._fixed, self.local, self._to_local, self._frozen
+        old = self.start, self._fixed, self.local, self._to_local, self._frozen, self._local_pairs
         self.start, self._fixed = start, estimate[:start].copy()
         books = self.books
         indices, kept = window_factors(
@@ -257,10 +259,11 @@ class WindowedGraph(Keyframes, Landmarks):
             result = graph.update(local, list(estimate[start:]), [(j, landmarks[j]) for j in sorted(kept)])
         except SolverError as exc:
             log.error("rebuilding the iSAM2 window failed, keeping the previous one: %s", exc)
-            self.start, self._fixed, self.local, self._to_local, self._frozen = old
+            self.start, self._fixed, self.local, self._to_local, self._frozen, self._local_pairs = old
             return False
         self.local, self.rebuilt = graph, True
         self._to_local = dict(zip(owners, result.factor_indices, strict=True))
+        self._local_pairs = list(self._to_local.items())
         self._frozen = {j: np.asarray(landmarks[j], float) for j in books.landmarks.keys() - kept}
         return True
 
@@ -305,46 +308,17 @@ class WindowedGraph(Keyframes, Landmarks):
         landmarks in the solver and the removed factors; once rebuilt, also the fixed keyframes and frozen
         landmarks, the window's own iSAM2 (its ``PoseGraph.state()``, replayed as it is) and which of its
         factors is which (before that the window is the whole graph, replayed from the log). It is
-        ``graph.window_state.joined`` of ``parts()``."""
-        return joined(*self.parts())
+        ``graph.window_state.joined`` of ``parts()``, with the estimates that check a replay."""
+        state = joined(*self.parts())
+        state["estimate"] = self.poses()
+        if self.rebuilt:
+            state["window"]["local"]["estimate"] = self.local.poses()
+        return state
 
     def parts(self) -> tuple[dict[str, Any], dict[str, Any]]:
-        """``state()`` in two parts: what the window bounds, and the append-only logs (live, not copied: the
-        factor records, guesses and update log of the whole graph, and the fixed past, which a roll replaces)."""
-        books = self.books
-        pending = [r for observations in books.pending.values() for r in observations]
-        window: dict[str, Any] = {
-            "settings": window_state(self.settings),
-            "start": self.start,
-            "landmarks": np.array(sorted(books.landmarks), np.int64),
-        }  # the removed factors: those the update log removed (``joined``)
-        small: dict[str, Any] = {
-            "noise": noise_state(self.settings),
-            "factorization": self.factorization,
-            "pending_landmarks": np.array(list(books.pending), np.int64),
-            "pending": to_columns(pending),
-            "window": window,
-        }
-        logs: dict[str, Any] = {
-            "factors": books.factors,
-            "initial": books.initial,
-            "landmark_initial": books.landmark_initial,
-            "updates": books.log,
-        }
-        if self.rebuilt:
-            frozen = sorted(self._frozen)
-            window.update(
-                {
-                    "frozen": np.array(frozen, np.int64),
-                    "frozen_estimates": np.array([self._frozen[j] for j in frozen]).reshape(-1, 3),
-                    "local": self.local.state(),
-                    "to_local": np.array(sorted(self._to_local.items()), np.int64).reshape(-1, 2),
-                }
-            )
-            logs["fixed"] = self._fixed
-        else:  # the window is the whole graph and bounded by it: its estimate checks the replay
-            small["estimate"] = self.poses()
-        return small, logs
+        """``state()`` in two parts (``graph.window_state.window_parts``): what the window bounds, and the
+        append-only logs (live)."""
+        return window_parts(self)
 
     @classmethod
     def from_state(cls, state: dict[str, Any], settings: GraphSettings | None = None) -> WindowedGraph:
@@ -365,6 +339,7 @@ class WindowedGraph(Keyframes, Landmarks):
             graph.books = local.books.copy()
             graph.books.pending, local.books.pending = local.books.pending, {}  # the window's to hold back
             graph._to_local = {i: i for i in range(len(local.factors)) if i not in local.books.removed}
+            graph._local_pairs = list(graph._to_local.items())
             graph._index.add(graph.factors, 0)
             return graph
         log_entries = [tuple(e) for e in state["updates"]]
@@ -389,6 +364,7 @@ class WindowedGraph(Keyframes, Landmarks):
             int(j): np.asarray(p, float) for j, p in zip(saved["frozen"], saved["frozen_estimates"], strict=True)
         }
         graph._to_local = {int(i): int(li) for i, li in saved["to_local"]}
+        graph._local_pairs = list(graph._to_local.items())
         if graph.start:
             graph._running_child()
         return graph
