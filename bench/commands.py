@@ -108,8 +108,14 @@ def bench_throughput(
     ros2: Annotated[
         bool, typer.Option("--ros2", help="the ROS 2 ingest path (rmw_zenoh keys) against protocol v1")
     ] = False,
+    rerun: Annotated[bool, typer.Option("--rerun", help="the viewer's cost: a Rerun recording on and off")] = False,
 ) -> None:
     """Replay-to-graph throughput at max rate over zenoh (frames pre-encoded, service in a subprocess)."""
+    if rerun:
+        from bench.viewer_throughput import run_viewer_throughput
+
+        run_viewer_throughput(console, dataset, frames, write)
+        return
     if ros2:
         from bench.ros2_throughput import run_ros2_throughput
 
@@ -325,24 +331,6 @@ def bench_stages(
     run_stages_bench(console, dataset, frames, write)
 
 
-@bench_app.command("persistence")
-def bench_persistence(
-    dataset: Annotated[
-        str, typer.Option("--dataset", help="dataset spec")
-    ] = "synthetic:room?seed=0&frames=800&fps=10&revolutions=4.5",
-    keyframes: Annotated[str, typer.Option("--keyframes", help="checkpoints, comma separated")] = "100,200,300",
-    write: WriteOpt = None,
-) -> None:
-    """Map store checkpoint / load / restore time and size against the number of keyframes."""
-    from bench.persistence import run_persistence_bench
-
-    try:
-        checkpoints = [int(k) for k in keyframes.split(",")]
-    except ValueError:
-        raise UserError(f"--keyframes must be integers separated by commas, got {keyframes!r}") from None
-    run_persistence_bench(console, dataset, checkpoints, write)
-
-
 @bench_app.command("frontends")
 def bench_frontends(
     dataset: Annotated[str, typer.Option("--dataset", help="dataset with ground truth")],
@@ -365,3 +353,6 @@ def bench_detector(
     from bench.detector import run_detector_bench
 
     run_detector_bench(console, dataset, every, write)
+
+
+from bench import commands_store  # noqa: E402, F401  (its commands register on bench_app)

@@ -20,7 +20,7 @@ from rich.console import Console
 
 from bench.report import load_note, markdown_table, record, show_table
 from bench.rig import free_port, query_status, router, start_serve, stop_serve, wait_for_status
-from bench.throughput import ROBOT, _serve_and_publish
+from bench.throughput import ROBOT, serve_and_publish
 from service.protocol import encode_frame
 from sources import open_dataset
 from sources.ros2 import keys, messages
@@ -118,7 +118,7 @@ def _runs(v1: list[bytes], ros: list[list[tuple[str, str, bytes]]]) -> tuple[lis
     for round_ in range(ROUNDS):
         for path in ("v1", "ros2") if round_ % 2 == 0 else ("ros2", "v1"):
             if path == "v1":
-                status, _, seconds = _serve_and_publish(v1, None)
+                status, _, seconds = serve_and_publish(v1, None)
             else:
                 status, seconds = _serve_ros2(ros)
             results[path].append({"status": status, "fps": status["frames_processed"] / seconds})

@@ -27,12 +27,16 @@ FPS_TARGET, LATENCY_P95_TARGET_MS, CAMERA_HZ = 30.0, 50.0, 30.0
 SOURCE_P50_TARGET_MS = 100.0  # a synthetic 640x480 frame rendered in under 100 ms
 
 
-def _serve_and_publish(payloads: list[bytes], rate_hz: float | None) -> tuple[dict, float, float]:
-    """A router and a serve subprocess; publish ``payloads`` (at ``rate_hz``, or all at once) and wait until
-    every frame is processed or rejected. Returns the final status, the publishing and the total seconds."""
+def serve_and_publish(
+    payloads: list[bytes], rate_hz: float | None, env: dict[str, str] | None = None
+) -> tuple[dict, float, float]:
+    """A router and a serve subprocess (``env``: more of its environment); publish ``payloads`` (at ``rate_hz``,
+    or all at once) and wait until every frame is processed or rejected. Returns the final status, the
+    publishing and the total seconds."""
     port = free_port()
     session = router(port)
-    serve, log = start_serve(f"tcp/127.0.0.1:{port}", ROBOT, {"OBJSLAM_INGEST__QUEUE_SIZE": str(len(payloads) + 1)})
+    env = {"OBJSLAM_INGEST__QUEUE_SIZE": str(len(payloads) + 1), **(env or {})}
+    serve, log = start_serve(f"tcp/127.0.0.1:{port}", ROBOT, env)
     key = f"objslam/{ROBOT}/status"
     try:
         wait_for_status(session, key, serve, log)
@@ -66,9 +70,9 @@ def measure(dataset: str, frames: int) -> dict:
         source_s.append(time.perf_counter() - t0)
         payloads.append(encode_frame(frame))
     load, steal = [os.getloadavg()[0]], StealMeter()
-    status, published, elapsed = _serve_and_publish(payloads, None)
+    status, published, elapsed = serve_and_publish(payloads, None)
     load.append(os.getloadavg()[0])
-    paced, _, _ = _serve_and_publish(payloads, CAMERA_HZ)
+    paced, _, _ = serve_and_publish(payloads, CAMERA_HZ)
     load.append(os.getloadavg()[0])
     lat, plat = status["latency"], paced["latency"]
     source_p50, source_p95 = np.percentile(np.array(source_s) * 1e3, [50, 95])
