@@ -29,10 +29,10 @@ def summarize(core: SlamCore, old: MapSummary) -> MapSummary:
     # landmark estimates move with every graph update; without landmarks only the object map version counts
     objects_key = (core.object_map_version, graph.updates if graph.num_landmarks else 0)
     objects = old.objects if old.objects_key == objects_key else core.object_list()
-    records = core.loop_records()
-    accepted = sum(1 for r in records if r.accepted)
-    key = (len(records), accepted)
-    loops = old.loops if key == old.loops_key else [r.to_json() for r in records]
+    closer = core.loops  # its accepted loops are the records marked accepted: counted without a scan
+    n_records, accepted = (len(closer.records), len(closer.accepted)) if closer is not None else (0, 0)
+    key = (n_records, accepted)
+    loops = old.loops if key == old.loops_key else [r.to_json() for r in core.loop_records()]
     counts = {
         "keyframes": graph.num_keyframes,
         "poses": graph.num_keyframes,
@@ -43,7 +43,7 @@ def summarize(core: SlamCore, old: MapSummary) -> MapSummary:
         "landmark_measurements": len(core.landmarks.assigned) if core.landmarks is not None else 0,
         "object_reposes": core.reposes,
         "object_mapping_errors": core.mapping_errors,
-        "loop_closures": {"accepted": accepted, "rejected": len(records) - accepted},
+        "loop_closures": {"accepted": accepted, "rejected": n_records - accepted},
         "graph_window": {"first_keyframe": graph.start, "whole_graph_solves": graph.global_solves},
         "keyframe_detections_by_class": dict(core.detections_by_class),
         "objects": len(objects),
