@@ -157,10 +157,6 @@ class MapStore:
         self.session = int(cur.lastrowid or 0)
         return self.session
 
-    def sessions(self) -> list[dict[str, Any]]:
-        rows = self.db.execute("SELECT id, started, info FROM sessions ORDER BY id").fetchall()
-        return [{"id": i, "started": s, **json.loads(info)} for i, s, info in rows]
-
     # ------------------------------------------------------------ writing
 
     def checkpoint(self, small: dict[str, Any], logs: dict[str, Any], keyframes: int, frames: int) -> int:
