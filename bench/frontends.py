@@ -16,7 +16,8 @@ from rich.console import Console
 from bench.report import markdown_table, record
 from evaluation.trajectory_metrics import trajectory_error
 from perception.frame import Frame
-from perception.frontend import KeyframeSettings, VisualOdometry
+from perception.frontend import VisualOdometry
+from perception.keyframing import KeyframeSettings
 from perception.odometry import FeatureExtractor, Features, OdometrySettings
 from sources import ground_truth_of, open_dataset
 
@@ -49,12 +50,14 @@ def measure(dataset: str, frames: int) -> list[list[object]]:
     images = [data.frame(i) for i in range(n)]
     gt = ground_truth_of(data).poses[:n]
     rows = []
-    for name, icp, sift in (
-        ("ORB + PnP-RANSAC + LM", False, False),
-        ("ORB + PnP + depth ICP at keyframes", True, False),
-        ("SIFT + PnP-RANSAC + LM", False, True),
+    for name, icp, sift, tracker in (
+        ("ORB + PnP-RANSAC + LM", False, False, "features"),
+        ("ORB + PnP + depth ICP at keyframes", True, False, "features"),
+        ("SIFT + PnP-RANSAC + LM", False, True, "features"),
+        ("ORB at keyframes, optical flow + PnP between", False, False, "flow"),
+        ("... and depth ICP at keyframes (the service's default)", True, False, "flow"),
     ):
-        vo = VisualOdometry(data.camera, KeyframeSettings(), OdometrySettings(icp=icp))
+        vo = VisualOdometry(data.camera, KeyframeSettings(), OdometrySettings(icp=icp, tracker=tracker))
         if sift:
             _sift(vo)
         t0 = time.perf_counter()

@@ -23,7 +23,7 @@ from evaluation.object_metrics import ellipse_box_iou, match_objects
 from graph.geometry import inverse, motion_magnitude
 from perception.clustering import ClusterConfig
 from perception.features import FeatureConfig
-from perception.frontend import KeyframeSettings
+from perception.keyframing import KeyframeSettings
 from perception.npda import NPDAConfig
 from perception.object_map import ObjectMapper
 from perception.tracks import Tracker

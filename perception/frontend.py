@@ -1,4 +1,4 @@
-"""Odometry front ends: external odometry from the frames, or RGB-D visual odometry (SPEC 6.4).
+"""Odometry front ends: RGB-D visual odometry here, external odometry in ``perception.external_odometry`` (SPEC 6.4).
 
 Both decide keyframes and give, for each keyframe, the relative pose from the previous keyframe with
 its noise: the odometry between-factor of the graph.
@@ -8,19 +8,21 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from graph.geometry import inverse, motion_magnitude, relative
 from perception.fallback import FallbackChain
 from perception.frame import CameraModel, Frame
-from perception.hypotheses import Hypothesis, Method, scaled_motion
+from perception.hypotheses import Hypothesis, scaled_motion
 from perception.icp import (
     depth_agreement,
     icp_refine,
 )
+from perception.keyframe_deferral import DeferredKeyframes
+from perception.keyframe_tracker import KeyframeTracker
+from perception.keyframing import KeyframeSettings, Step
 from perception.odometry import (
     FeatureExtractor,
     Features,
@@ -31,100 +33,6 @@ from perception.odometry import (
 )
 
 log = logging.getLogger(__name__)
-
-
-class KeyframeSettings(BaseModel):
-    """A frame becomes a keyframe when it moved enough since the last one, too many frames passed, or (visual
-    odometry) too few inliers track it; and external odometry that jumps is rejected (``implausible``)."""
-
-    model_config = ConfigDict(frozen=True, extra="forbid")
-
-    translation_m: float = Field(default=0.05, gt=0)
-    rotation_deg: float = Field(default=5.0, gt=0)
-    max_interval: int = Field(default=10, ge=1, description="frames between keyframes at most")
-    min_inliers: int = Field(default=120, ge=0, description="visual odometry: new keyframe when tracking weakens")
-    skip_edges: int = Field(
-        default=2,
-        ge=1,
-        description="visual odometry: factors from a new keyframe to this many earlier "
-        "keyframes (1 = the previous one only)",
-    )
-    max_jump_m: float = Field(
-        default=1.0,
-        ge=0,
-        description="external odometry: a frame whose pose lies farther than this + max_speed_mps x the time "
-        "since the previous frame from the previous frame's is rejected (odometry_jump)",
-    )
-    max_speed_mps: float = Field(default=10.0, ge=0, description="external odometry: see max_jump_m")
-    max_time_jump_s: float = Field(
-        default=60.0,
-        gt=0,
-        description="a frame stamped more than this after the last accepted one is rejected (time_jump), unless "
-        "time_jump_frames such frames in a row, each within this of the one before, start a new time reference",
-    )
-    time_jump_frames: int = Field(default=3, ge=2, description="see max_time_jump_s")
-
-    def implausible(self, previous: np.ndarray, pose: np.ndarray, dt: float) -> bool:
-        """External odometry that moved farther than ``max_jump_m`` + ``max_speed_mps`` * dt from the previous
-        frame's: a glitch, not motion (it would drag the whole graph, and a kilometre jump makes iSAM2 fail)."""
-        jump = float(np.linalg.norm(pose[:3, 3] - previous[:3, 3]))
-        return jump > self.max_jump_m + self.max_speed_mps * max(dt, 0.0)
-
-
-@dataclass
-class Step:
-    """What the front end made of one frame."""
-
-    pose: np.ndarray
-    keyframe: bool
-    factor: np.ndarray | None = None
-    sigma_m: float | None = None
-    sigma_deg: float | None = None
-    lost: bool = False
-    inliers: int = 0
-    features: Features | None = None
-    extra: list[tuple[int, np.ndarray, float, float]] = field(default_factory=list)
-    method: Method = "features"
-    posed: bool = True  # False: lost, and nothing in the frame to track from (no keyframe; no pose)
-
-
-class ExternalOdometry:
-    """Odometry poses carried by the frames; the factor is the odometry increment between keyframes."""
-
-    def __init__(self, policy: KeyframeSettings):
-        self.policy = policy
-        self._kf_pose: np.ndarray | None = None
-        self._since = 0
-
-    def track(self, frame: Frame) -> Step:
-        if frame.odometry is None:
-            raise ValueError("external odometry needs frames that carry odometry")
-        return self.track_pose(frame.odometry)
-
-    def track_pose(self, pose: np.ndarray) -> Step:
-        """The step of a frame whose odometry pose is ``pose``."""
-        if self._kf_pose is None:
-            self._kf_pose, self._since = pose, 0
-            return Step(pose, True, method="odometry")
-        rel = relative(self._kf_pose, pose)
-        trans, rot = motion_magnitude(rel)
-        self._since += 1
-        p = self.policy
-        if trans >= p.translation_m or rot >= math.radians(p.rotation_deg) or self._since >= p.max_interval:
-            self._kf_pose, self._since = pose, 0
-            return Step(pose, True, rel, method="odometry")
-        return Step(pose, False, method="odometry")
-
-    def continue_from(self, kf_pose: np.ndarray | None, since: int) -> None:
-        """The last keyframe (made by another front end) is at ``kf_pose``, ``since`` frames ago."""
-        self._kf_pose, self._since = kf_pose, since
-
-    def state(self) -> dict:
-        """Plain tracking state (the last keyframe's pose, frames since it)."""
-        return {"kf_pose": self._kf_pose, "since": self._since}
-
-    def restore(self, state: dict) -> None:
-        self._kf_pose, self._since = state["kf_pose"], state["since"]
 
 
 class VisualOdometry:
@@ -144,6 +52,8 @@ class VisualOdometry:
         self.extractor = FeatureExtractor(camera, config)
         self.estimator = RelativePoseEstimator(camera, config)
         self.chain = FallbackChain(camera, config, self.estimator)
+        self.tracker = KeyframeTracker(config.flow_points, config.flow_max_fb_px)  # between keyframes (flow)
+        self.deferral: DeferredKeyframes | None = None  # live: keyframes made on another thread
         self._kf_pose: np.ndarray | None = None
         self._kf_features: Features | None = None
         self._kf_depth: np.ndarray | None = None
@@ -186,26 +96,70 @@ class VisualOdometry:
             setattr(self, name, state[key] if key in state else defaults[key])
 
     def track(self, frame: Frame) -> Step:
-        features = self.extractor.extract(frame)
-        depth = frame.depth_m()
+        """The frame's step; with ``deferral`` (live) it may carry a keyframe decided earlier (``Step.deferred``)."""
+        gray, deferral = gray_image(frame), self.deferral
+        deferred = deferral.ready(self) if deferral is not None else None
+        step = self._track(frame, gray)
+        if deferral is not None and deferral.finished is not None:  # the flow failed: the job was waited for
+            deferred = deferral.finished
+        if deferral is not None:
+            deferral.finished = None
+            deferral.count(step)
+        step.deferred = deferred
+        return step
+
+    def _track(self, frame: Frame, gray: np.ndarray) -> Step:
         kf_pose, kf_features, kf_depth = self._kf_pose, self._kf_features, self._kf_depth
-        if kf_pose is None or kf_features is None or kf_depth is None:  # the first frame (all three or none)
+        started = kf_pose is not None and kf_features is not None and kf_depth is not None  # all three or none
+        if started:
+            self._since += 1
+        if started and kf_pose is not None and self.config.tracker == "flow":
+            flowed = self._flow(gray, self._prediction(frame.timestamp, kf_pose))
+            if flowed is None and self.deferral is not None and self.deferral.pending:  # wait for the keyframe
+                self.deferral.finish(self, counted=True)
+                assert self._kf_pose is not None
+                flowed = self._flow(gray, self._prediction(frame.timestamp, self._kf_pose))
+            kf_pose = self._kf_pose
+            if flowed is not None and kf_pose is not None and self._flow_poses(frame, gray, flowed):
+                step = Step(kf_pose @ flowed.T, False, inliers=flowed.inliers, method="tracked")
+                return self._posed(frame, step)  # between keyframes, or a keyframe made on another thread
+        depth = frame.depth_m()
+        features = self.extractor.extract_gray(gray, depth)
+        kf_pose = self._kf_pose
+        if kf_pose is None or self._kf_features is None or self._kf_depth is None:  # the first frame
             step = Step(np.eye(4), True, features=features, method="features")
-            return self._new_keyframe(np.eye(4), features, depth, frame, step)
-        self._since += 1
+            return self._new_keyframe(np.eye(4), features, depth, frame, step, gray)
         try:
-            rel = self.estimator.estimate(kf_features, features)
+            rel = self.estimator.estimate(self._kf_features, features)
             primary: Hypothesis | None = Hypothesis("features", rel.T_a_b, rel.sigma_m, rel.sigma_deg, rel.inliers)
         except Rejected as exc:
             primary, rejected = None, exc
         if primary is not None and not self._keyframe_due(primary):
             return self._posed(frame, Step(kf_pose @ primary.T, False, inliers=primary.inliers, method="features"))
-        chosen = self._choose(primary, features, depth, frame, kf_pose)
-        if chosen is None:
+        step_or_none = self.keyframe_step(frame, features, depth, primary, self._prediction(frame.timestamp, kf_pose))
+        if step_or_none is None:
             return self._lost(frame, features, depth, rejected if primary is None else Rejected("no_agreement"))
-        pose = kf_pose @ chosen.T
-        step = Step(
-            pose,
+        return self._new_keyframe(step_or_none.pose, features, depth, frame, self._posed(frame, step_or_none), gray)
+
+    def _flow_poses(self, frame: Frame, gray: np.ndarray, flowed: Hypothesis) -> bool:
+        """The flow's pose stands for ``frame``: no keyframe is due, or (live) its keyframe is made elsewhere."""
+        if not self._keyframe_due(flowed):
+            return True
+        return self.deferral is not None and self.deferral.take(self, frame, gray, flowed)
+
+    def keyframe_step(
+        self, frame: Frame, features: Features, depth: np.ndarray, primary: Hypothesis | None, prior: np.ndarray
+    ) -> Step | None:
+        """The keyframe step of ``frame`` (its factor, sigmas and skip edges) from its features and the best pose
+        hypothesis; None when no hypothesis agrees with the depth. Reads only the keyframe's state, so it may run
+        on another thread while frames are tracked by flow (``perception.keyframe_deferral``)."""
+        kf_pose = self._kf_pose
+        assert kf_pose is not None
+        chosen = self._choose(primary, features, depth, frame, kf_pose, prior)
+        if chosen is None:
+            return None
+        return Step(
+            kf_pose @ chosen.T,
             True,
             chosen.T,
             chosen.sigma_m,
@@ -215,7 +169,41 @@ class VisualOdometry:
             extra=self._skip_edges(features, depth),
             method=chosen.method,
         )
-        return self._new_keyframe(pose, features, depth, frame, self._posed(frame, step))
+
+    def keyframe_job(self, frame: Frame, gray: np.ndarray, flowed: Hypothesis, prior: np.ndarray) -> Step | None:
+        """A deferred keyframe's step (on another thread): features, then ``keyframe_step`` from their pose, or
+        from the flow's when the features fail."""
+        depth = frame.depth_m()
+        features = self.extractor.extract_gray(gray, depth)
+        assert self._kf_features is not None
+        try:
+            rel = self.estimator.estimate(self._kf_features, features)
+            primary = Hypothesis("features", rel.T_a_b, rel.sigma_m, rel.sigma_deg, rel.inliers)
+        except Rejected:
+            primary = flowed
+        return self.keyframe_step(frame, features, depth, primary, prior)
+
+    def accept_keyframe(self, frame: Frame, gray: np.ndarray, step: Step, since: int) -> None:
+        """A deferred keyframe becomes the one tracked against; the frames tracked since it stay posed."""
+        assert step.features is not None
+        last = self._last_pose
+        self._new_keyframe(step.pose, step.features, frame.depth_m(), frame, step, gray)
+        self._last_pose, self._since = last, since
+
+    def _flow(self, gray: np.ndarray, prior: np.ndarray | None = None) -> Hypothesis | None:
+        """``T_kf_frame`` from the keyframe's points followed into ``gray`` (``perception.keyframe_tracker``), or
+        None when too few were followed or PnP did not accept them."""
+        if not self.tracker.ready and self._kf_gray is not None and self._kf_features is not None:  # restored
+            self.tracker.start(self._kf_gray, self._kf_features.pixels, self._kf_features.points)
+        if prior is not None and self._kf_pose is not None:  # start the search where the motion prior says
+            T_color = self.estimator.E @ prior @ self.estimator.E_inv  # keyframe colour camera -> frame's
+            self.tracker.predict(inverse(T_color), self.estimator.K)
+        tracks = self.tracker.track(gray)
+        try:
+            rel = self.estimator.solve(tracks.points, tracks.pixels)
+        except Rejected:
+            return None
+        return Hypothesis("tracked", rel.T_a_b, rel.sigma_m, rel.sigma_deg, rel.inliers)
 
     def _keyframe_due(self, h: Hypothesis) -> bool:
         trans, rot = motion_magnitude(h.T)
@@ -228,7 +216,13 @@ class VisualOdometry:
         )
 
     def _choose(
-        self, primary: Hypothesis | None, features: Features, depth: np.ndarray, frame: Frame, kf_pose: np.ndarray
+        self,
+        primary: Hypothesis | None,
+        features: Features,
+        depth: np.ndarray,
+        frame: Frame,
+        kf_pose: np.ndarray,
+        prior: np.ndarray,
     ) -> Hypothesis | None:
         """The keyframe's pose: the features' PnP (refined by ICP within the correction gate); when the depth does
         not agree with it (``min_agreement``) or the features failed, the fallback chain's candidates compete
@@ -252,7 +246,6 @@ class VisualOdometry:
             return best[1]
         if cfg.fallback:
             assert self._kf_features is not None
-            prior = self._prediction(frame.timestamp, kf_pose)
             kf = (self._kf_features, self._kf_gray, kf_depth)
             for h in self.chain.candidates(kf, features, depth, frame, prior):
                 if primary is None or self._far_from(primary, h):
@@ -337,6 +330,8 @@ class VisualOdometry:
     def follow(self, frame: Frame, pose: np.ndarray, keyframe: bool) -> None:
         """``frame`` was posed at ``pose`` by another source; at a keyframe it becomes this front end's keyframe
         too (its features extracted), so that the next frame can be tracked visually against it."""
+        if self.deferral is not None:
+            self.deferral.drop()
         self._posed(frame, Step(pose, keyframe))
         if keyframe:
             features = self.extractor.extract(frame)
@@ -345,6 +340,8 @@ class VisualOdometry:
     def restart(self, frame: Frame, pose: np.ndarray) -> Step:
         """Start tracking again at ``frame``, whose pose is only known to be near ``pose`` (the frames in between
         were posed by another source): a lost keyframe, which the core relocalizes or starts a segment with."""
+        if self.deferral is not None:
+            self.deferral.drop()
         features = self.extractor.extract(frame)
         self._last_pose, self._velocity = pose, None
         return self._lost(frame, features, frame.depth_m(), Rejected("source_switch"))
@@ -353,7 +350,15 @@ class VisualOdometry:
         """The current keyframe's odometry pose is ``pose`` (after relocalization placed it in the map)."""
         self._kf_pose = self._last_pose = pose
 
-    def _new_keyframe(self, pose: np.ndarray, features: Features, depth: np.ndarray, frame: Frame, step: Step) -> Step:
+    def _new_keyframe(
+        self,
+        pose: np.ndarray,
+        features: Features,
+        depth: np.ndarray,
+        frame: Frame,
+        step: Step,
+        gray: np.ndarray | None = None,
+    ) -> Step:
         if step.lost:
             self._history = []
         elif self._kf_features is not None and self._kf_depth is not None:  # not the first keyframe
@@ -363,6 +368,11 @@ class VisualOdometry:
                 else []
             )
         self._kf_pose, self._kf_features, self._kf_depth = pose, features, depth
-        self._kf_gray = gray_image(frame) if self.config.fallback else None
+        flow = self.config.tracker == "flow"
+        if gray is None and (flow or self.config.fallback):
+            gray = gray_image(frame)
+        self._kf_gray = gray if (flow or self.config.fallback) else None
+        if flow and gray is not None:
+            self.tracker.start(gray, features.pixels, features.points)
         self._since, self._last_pose = 0, pose
         return step

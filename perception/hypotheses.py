@@ -8,11 +8,12 @@ from typing import Literal
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-Method = Literal["odometry", "features", "wide", "guided", "icp", "dense", "relocalized", "lost"]
-"""How a step was found: the frames' own odometry (external odometry); else by visual odometry: ORB features
-(the normal path), wide-baseline features (more of them), guided matching around a motion prior's projections,
-depth ICP, dense photometric alignment from the prior, relocalization against the keyframe database, or not at
-all (lost: a new map segment, or no pose)."""
+Method = Literal["odometry", "tracked", "features", "wide", "guided", "icp", "dense", "relocalized", "lost"]
+"""How a step was found: the frames' own odometry (external odometry); else by visual odometry: the keyframe's
+points followed by optical flow (between keyframes, ``perception.keyframe_tracker``), ORB features (keyframes,
+and frames the flow failed on), wide-baseline features (more of them), guided matching around a motion
+prior's projections, depth ICP, dense photometric alignment from the prior, relocalization against the
+keyframe database, or not at all (lost: a new map segment, or no pose)."""
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -32,6 +33,15 @@ class OdometrySettings(BaseModel):
 
     visual: bool = Field(
         default=True, description="track frames without odometry visually (off: they are rejected as no_odometry)"
+    )
+    tracker: Literal["flow", "features"] = Field(
+        default="flow",
+        description="between keyframes: follow the keyframe's points by optical flow and solve PnP (flow), or "
+        "extract and match ORB in every frame (features); keyframes always use features",
+    )
+    flow_points: int = Field(default=400, ge=20, description="flow: keyframe points followed at most")
+    flow_max_fb_px: float = Field(
+        default=1.0, gt=0, description="flow: a track whose backward flow misses its start by more is dropped"
     )
     n_features: int = Field(default=1500, ge=100)
     ratio: float = Field(default=0.8, gt=0, le=1, description="Lowe ratio test")
@@ -239,6 +249,13 @@ class RelativePoseEstimator:
         if len(ia) < cfg.min_matches:
             raise Rejected("too_few_matches", f"{len(ia)} guided < {cfg.min_matches}", len(ia))
         return self._solve(a.points[ia], b.pixels[ib], cfg, cfg.min_inliers, 2.0)
+
+    def solve(self, points: np.ndarray, pixels: np.ndarray, config: OdometrySettings | None = None) -> Relative:
+        """``T_a_b`` from a's colour-camera 3D points and their pixels in b (already matched or tracked)."""
+        cfg = config if config is not None else self.config
+        if len(points) < cfg.min_matches:
+            raise Rejected("too_few_matches", f"{len(points)} < {cfg.min_matches}", len(points))
+        return self._solve(points, pixels, cfg, cfg.min_inliers, 1.0)
 
     def _solve(
         self, points: np.ndarray, pixels: np.ndarray, cfg: OdometrySettings, min_inliers: int, scale: float

@@ -20,8 +20,11 @@ from typing import Literal
 import numpy as np
 
 from graph.geometry import inverse
+from perception.external_odometry import ExternalOdometry
 from perception.frame import Frame, FrameRejected, Reason
-from perception.frontend import ExternalOdometry, KeyframeSettings, Step, VisualOdometry
+from perception.frontend import VisualOdometry
+from perception.keyframe_deferral import DeferredKeyframes
+from perception.keyframing import KeyframeSettings, Step
 from perception.odometry import OdometrySettings
 
 Source = Literal["odometry", "visual"]
@@ -45,6 +48,7 @@ class PerFrameOdometry:
         self._last_pose = np.eye(4)
         self._kf_pose: np.ndarray | None = None
         self._since = 0
+        self.defer: DeferredKeyframes | None = None  # live: the visual front end's keyframes on another thread
 
     @property
     def config(self) -> OdometrySettings:
@@ -92,6 +96,8 @@ class PerFrameOdometry:
             self._anchor = frame.odometry
         elif step.posed:
             self._anchor = None
+        if step.deferred is not None:
+            self._kf_pose = step.deferred[1].pose
         if step.posed:
             self.last, self._last_pose = source, step.pose
             if step.keyframe:
@@ -109,6 +115,7 @@ class PerFrameOdometry:
 
     def _visual_step(self, frame: Frame) -> Step:
         visual = self._visual()
+        visual.deferral = self.defer
         if self.last is not None and not visual.started:  # nothing of its own to track from
             return visual.restart(frame, self._last_pose)
         return visual.track(frame)

@@ -129,6 +129,9 @@ def serve(
     rerun: RerunOpt = False,
     rerun_web: RerunWebOpt = None,
     rrd: RrdOpt = None,
+    live: Annotated[
+        bool, typer.Option("--live", help="latency first for a live camera: track the newest frame (ingest.live)")
+    ] = False,
 ) -> None:
     """Run the long-lived mapping service (until SIGINT / SIGTERM); with --ros2 it also takes ROS 2 topics."""
     from service.run import serve as serve_forever
@@ -136,6 +139,8 @@ def serve(
     topics = (rgb_topic, depth_topic, camera_info_topic, ros_domain_id, odom_topic, detections_topic)
     extra = {"ros2": ros} if (ros := ros2_overrides(ros2, *topics)) else {}
     extra |= viewer_overrides(rerun, rerun_web, rrd)
+    if live:
+        extra["ingest"] = {"live": True}
     settings = _settings(config, robot, connect, listen, mode, state_dir, zenoh_config, extra)
     code = serve_forever(_with_lc(settings, lc_source, lc_policy))
     if code:  # some outputs could not be written on shutdown (logged one line each)

@@ -27,7 +27,7 @@ from pydantic_settings import (
 from graph.settings import GraphSettings
 from loops.settings import LoopSettings
 from perception.detector import DetectorSettings
-from perception.frontend import KeyframeSettings
+from perception.keyframing import KeyframeSettings
 from perception.odometry import OdometrySettings
 from service.protocol import Limits
 from service.ros2_settings import Ros2Settings
@@ -75,6 +75,17 @@ class IngestSettings(Limits):
     """The bounded ingest queue between zenoh callbacks and the worker thread, and the decoder's bounds."""
 
     queue_size: int = Field(64, ge=1, description="frames held before the oldest is dropped")
+    live: bool = Field(
+        False,
+        description="latency first, for a robot's live camera (serve --live): the newest frame is tracked and the "
+        "older ones waiting are skipped undecoded (frames_dropped, reason stale), a decoded frame older than "
+        "max_age_ms is skipped when a newer one waits, and keyframe mapping never holds up tracking (applied "
+        "when done; keyframes that arrive while it is behind get no detection). Off: every frame in order "
+        "(replays of recordings, benchmarks), the map bit-identical to `run`'s",
+    )
+    max_age_ms: float = Field(
+        100.0, gt=0, allow_inf_nan=False, description="live: a frame older than this is skipped for a newer one"
+    )
 
 
 class PersistenceSettings(BaseModel):

@@ -35,7 +35,8 @@ class IngestQueue:
         self.capacity = capacity
         self._items: deque[Ingested] = deque()
         self._cond = threading.Condition()
-        self.dropped = 0
+        self.dropped = 0  # every frame dropped: the queue was full, the service stopped, or stale
+        self.stale = 0  # ... of them: skipped for a newer frame (live ingest, ``get_newest``)
 
     def put(self, message: Inspected, received: float | None = None) -> bool:
         """Enqueue; returns True when the oldest item had to be dropped to make room."""
@@ -56,6 +57,24 @@ class IngestQueue:
             item = self._items.popleft()
             self._cond.notify_all()
             return item
+
+    def get_newest(self, timeout: float) -> Ingested | None:
+        """The newest item, the older ones dropped as stale (live ingest: tracking works on the freshest frame,
+        and a frame skipped here was never decoded); None when nothing arrived within ``timeout``."""
+        with self._cond:
+            if not self._items and not self._cond.wait_for(lambda: bool(self._items), timeout):
+                return None
+            item = self._items.pop()
+            self.count_stale(len(self._items))
+            self._items.clear()
+            self._cond.notify_all()
+            return item
+
+    def count_stale(self, n: int) -> None:
+        """Count ``n`` frames skipped for a newer one (dropped, reason stale)."""
+        with self._cond:
+            self.dropped += n
+            self.stale += n
 
     def discard(self) -> int:
         """Drop every queued item and count it in ``dropped`` (shutdown); returns how many."""

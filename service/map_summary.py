@@ -43,6 +43,11 @@ def summarize(core: SlamCore, old: MapSummary) -> MapSummary:
         "landmark_measurements": len(core.landmarks.assigned) if core.landmarks is not None else 0,
         "object_reposes": core.reposes,
         "object_mapping_errors": core.mapping_errors,
+        "mapping": {  # keyframe mapping behind tracking (its lag: latency.mapping_lag)
+            "live": core.live,
+            "pending_keyframes": len(core.pending),
+            "detections_skipped": core.detections_skipped,
+        },
         "loop_closures": {"accepted": accepted, "rejected": n_records - accepted},
         "graph_window": {"first_keyframe": graph.start, "whole_graph_solves": graph.global_solves},
         "keyframe_detections_by_class": dict(core.detections_by_class),

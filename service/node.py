@@ -11,7 +11,6 @@ and on ``stop`` (``service.map_persistence``).
 from __future__ import annotations
 
 import logging
-import queue
 import sys
 import threading
 import time
@@ -28,6 +27,7 @@ from perception.frame import Frame
 from service.config import IngestSettings, Settings
 from service.events import MapEvents
 from service.ingest import Gate, IngestQueue, decode_counted
+from service.intake import Intake, MappingLag
 from service.labels import LabelVocabulary
 from service.map_persistence import Persistence, service_state
 from service.map_summary import MapSummary, summarize
@@ -63,7 +63,8 @@ class ServiceNode:
         self._summary, self._summary_version = MapSummary(), 0
         self._stop = threading.Event()
         self._frame_done = threading.Condition()  # notified after each frame is processed, rejected or failed
-        self._decoded: queue.Queue[tuple[Frame, float]] = queue.Queue(maxsize=2)  # decoder -> worker
+        self.intake = Intake(settings.ingest, self.queue, self._stop)  # decoder -> worker, in order or live
+        self.mapping_lag = MappingLag()
         self.service_id = str(session.zid())
         self.saves = SaveRequests(settings, self.service_id, self.write_outputs)
         self.labels = LabelVocabulary(self.limits.labels, self.limits.extra_labels, self.limits.max_detections)
@@ -82,6 +83,7 @@ class ServiceNode:
             self.persistence = Persistence(settings.state_dir, settings.robot, ps.every_keyframes, ps.keep)
             if self.persistence.resume(self._restore, service_state):
                 self.core.begin_session(ps.session_gap_s)
+        self.core.live = settings.ingest.live
         self._publish_summary()
 
     # ------------------------------------------------------------ lifecycle
@@ -149,14 +151,7 @@ class ServiceNode:
     def _discard_queued(self) -> None:
         """Frames received and still queued when the decoder and worker stopped: counted as dropped, so that
         after a restart every received frame is processed, rejected, failed or dropped."""
-        decoded = 0
-        while True:
-            try:
-                self._decoded.get_nowait()
-            except queue.Empty:
-                break
-            decoded += 1
-        left = self.queue.discard() + self.queue.count_dropped(decoded)
+        left = self.intake.discard()
         if left:
             log.info("stopping with %d queued frames unprocessed: counted in frames_dropped", left)
         self.saves.refuse_all("the service is stopping (with a state directory it writes its outputs)")
@@ -206,31 +201,23 @@ class ServiceNode:
     def _decode_loop(self) -> None:
         """Decoder thread: raw messages from the ingest queue, validated and decoded, to the worker."""
         while not self._stop.is_set():
-            item = self.queue.get(timeout=0.1)
+            item = self.intake.take(timeout=0.1)
             if item is None:
                 continue
             frame = decode_counted(item.message, self.stats)
             if frame is None:
                 self._completed_one()
                 continue
-            frame = self.labels.apply(frame)
-            while True:
-                try:
-                    self._decoded.put((frame, item.received), timeout=0.1)
-                    break
-                except queue.Full:
-                    if self._stop.is_set():  # stopping with the worker's queue full: counted as dropped
-                        self.queue.count_dropped(1)
-                        break
+            self.intake.hand_over(self.labels.apply(frame), item.received)
 
     def _work(self) -> None:
         """Worker thread: decoded frames through the SLAM core, one at a time; ``save`` requests between them."""
         while not self._stop.is_set():
             self.saves.answer()
-            try:
-                frame, received = self._decoded.get(timeout=0.1)
-            except queue.Empty:
+            taken = self.intake.next(timeout=0.1)
+            if taken is None:
                 continue
+            frame, received = taken
             try:
                 self._process(frame, received)
             except Exception:  # the worker must survive anything a frame can trigger
@@ -247,8 +234,9 @@ class ServiceNode:
         t1 = time.monotonic()
         try:
             with self._lock:
-                stage_times = self.core.step(frame).timings
+                result = self.core.step(frame)
             t2 = time.monotonic()
+            stage_times, added = result.timings, result.added
         except FrameRejected as exc:
             self.stats.count_rejected(exc.reason.value)
             log.debug("rejected frame: %s", exc)
@@ -263,6 +251,15 @@ class ServiceNode:
             self.stats.time(stage, seconds)
         self.stats.time("ingest_to_graph", t2 - received)
         self.stats.count_processed()
+        self.mapping_lag.frame(frame.timestamp, received, added)
+        if self.core.live:  # keyframe mapping finished since: into the map now, after this frame's pose
+            with self._lock:
+                applied = self.core.apply_ready()
+            if applied:
+                self._publish_summary()
+        now = time.monotonic()
+        for lag in self.mapping_lag.applied(len(self.core.kf_odometry) - len(self.core.pending), now):
+            self.stats.time("mapping_lag", lag)
         self.snapshot()
 
     # ------------------------------------------------------------ persistence
@@ -362,6 +359,7 @@ class ServiceNode:
             robot=self.settings.robot,
             protocol_version=VERSION,
             frames_dropped=self.queue.dropped,
+            frames_dropped_by_reason=self.intake.dropped_by_reason(),
             queue_depth=self.queue.depth,
             queue_capacity=self.queue.capacity,
             uptime_s=round(time.time() - self._started, 3),

@@ -25,6 +25,7 @@ class ThreadedRunner:
         self._lanes = {
             Lane.MAP: ThreadPoolExecutor(1, thread_name_prefix="objslam-mapping"),
             Lane.DETECT: ThreadPoolExecutor(1, thread_name_prefix="objslam-detector"),
+            Lane.KEYFRAME: ThreadPoolExecutor(1, thread_name_prefix="objslam-keyframe"),
         }
 
     def submit(self, lane: Lane, stage: Callable[..., Any], *args: Any) -> Handle:
@@ -32,5 +33,5 @@ class ThreadedRunner:
 
     def close(self) -> None:
         """Finish the submitted stages, then stop the threads."""
-        for executor in (self._lanes[Lane.DETECT], self._lanes[Lane.MAP]):
+        for executor in (self._lanes[Lane.KEYFRAME], self._lanes[Lane.DETECT], self._lanes[Lane.MAP]):
             executor.shutdown(wait=True)

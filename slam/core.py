@@ -8,7 +8,9 @@ landmark measurements and verified loop candidates; (5) this keyframe's mapping 
 runner (``slam.stages``: detection, objects, loop verification); (6) every frame is recorded relative to its
 keyframe, so the whole trajectory follows the graph. The stages read only what they are given and are applied
 at a fixed point, so the map is the same whether the runner runs them at once (``InlineRunner``) or on
-threads (``service.scheduler.ThreadedRunner``).
+threads (``service.scheduler.ThreadedRunner``). Live (``SlamCore.live``, a robot's camera) trades that for
+latency: a keyframe's mapping is applied as soon as it is done (``apply_ready``), tracking never waits for it
+below ``LIVE_MAX_PENDING`` keyframes, and keyframes arriving while it is behind are not detected on.
 """
 
 from __future__ import annotations
@@ -24,23 +26,24 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from graph.object_landmarks import ObjectLandmarks
-from graph.trajectory import Trajectory
 from graph.window import WindowedGraph
 from loops.archive import ColdLog
 from loops.closer import LoopCloser
-from loops.records import Candidate, KeyframeEntry, LoopRecord, Source
+from loops.records import Candidate, KeyframeEntry, Source
 from perception.frame import CameraModel, Detection, Frame, FrameRejected, Reason
-from perception.frontend import Step
-from perception.object_map import ObjectMapper, object_json
+from perception.keyframe_deferral import DeferredKeyframes
+from perception.keyframing import Step
+from perception.object_map import ObjectMapper
 from perception.odometry import FeatureExtractor
 from perception.odometry_choice import PerFrameOdometry
 from perception.registration import map_points
 from rl.proposer import PolicyProposer
 from slam import relocalization, stages
 from slam.clock import StreamClock
+from slam.map_views import MapViews
 from slam.records import FrameRecord, KeyframeLoops, KeyframeObjects, StepResult
 from slam.repose import repose_due
-from slam.runner import Done, Handle, InlineRunner, Lane, Runner
+from slam.runner import Done, Handle, InlineRunner, Lane, Runner, idle
 from slam.segments import Segments, TrackingState
 from slam.settings import SlamConfig
 
@@ -54,6 +57,12 @@ MAPPING_LAG = 3
 the mapping thread has that many keyframe intervals before tracking waits for it. `bench throughput` at 30
 frames/s with 14-18 % of the CPU stolen by the host: ingest-to-graph p95 67 and 321 ms with 3, 745 and 1594
 ms with 2; with 1 the worker waited at p95 80-107 ms per step even on a quieter machine."""
+
+LIVE_BEHIND = 2
+"""Live: a keyframe gets no detection while this many keyframes' mapping is unfinished (the detector and the
+mapping thread are behind the camera; detecting more would only add to their lag)."""
+LIVE_MAX_PENDING = 8
+"""Live: tracking waits for the oldest keyframe's mapping only when this many are unapplied (bounds memory)."""
 
 
 @dataclass
@@ -70,7 +79,7 @@ TrackingFactory = Callable[[CameraModel, bool], Tracking]
 """Builds the tracking components for a camera; the flag: the frames carry their own odometry."""
 
 
-class SlamCore:
+class SlamCore(MapViews):
     """Turns validated frames into keyframes, factors, objects and loop closures."""
 
     def __init__(
@@ -110,6 +119,8 @@ class SlamCore:
         self.methods: Counter[str] = Counter()  # frames per tracking method (perception.hypotheses.Method)
         self.session_gap_s: float | None = None  # ``begin_session`` until the first frame; then the session's
         self.session_keyframe: int | None = None  # first keyframe when it began anywhere
+        self.live = False  # latency first (``ingest.live``): mapping applied when done, never waited for
+        self.detections_skipped = 0  # live: keyframes not given to the detector because mapping was behind
 
     @property
     def frontend(self) -> PerFrameOdometry | None:
@@ -139,12 +150,20 @@ class SlamCore:
                 self.session_keyframe = len(self.kf_odometry)
             self.session_gap_s = None
         version, n_loops = self.object_map_version, len(self.loops.records) if self.loops is not None else 0
+        frontend = self.tracking.frontend
+        if self.live and frontend.defer is None:
+            frontend.defer = DeferredKeyframes(lambda *job: self.runner.submit(Lane.KEYFRAME, *job))
         t0 = time.perf_counter()
-        step = self.tracking.frontend.track(frame)
+        step = frontend.track(frame)
         self.timings["frontend"] = time.perf_counter() - t0
         self.tracking_lost += int(step.lost)
+        added = []
+        if step.deferred is not None:  # live: a keyframe made beside the tracking, added before this frame
+            kf_frame, kf_step = step.deferred
+            added.append((self._add_keyframe(kf_frame, kf_step).keyframe, kf_frame.timestamp))
         if step.keyframe:
             record = self._add_keyframe(frame, step)
+            added.append((record.keyframe, frame.timestamp))
         else:
             kf = len(self.kf_odometry) - 1
             offset = np.linalg.inv(self.kf_odometry[kf]) @ step.pose
@@ -159,6 +178,7 @@ class SlamCore:
             self.loops.records[n_loops:] if self.loops is not None else [],
             self.object_map_version != version,
             dict(self.timings),
+            tuple(added),
         )
 
     def _check(self, frame: Frame) -> None:
@@ -204,7 +224,9 @@ class SlamCore:
                 relocalization.try_join(self.graph, self.segments, self.loops, kf, frame, step)
         self.kf_odometry.append(step.pose)
         self.kf_points.append(map_points(frame))
-        while len(self.pending) >= MAPPING_LAG:
+        if self.live:
+            self.apply_ready()
+        while len(self.pending) >= (LIVE_MAX_PENDING if self.live else MAPPING_LAG):
             self._apply_mapping()
         self._submit_mapping(kf, frame, step)
         return FrameRecord(frame.timestamp, frame.seq, kf, True, step.pose, np.eye(4))
@@ -214,7 +236,10 @@ class SlamCore:
     def _submit_mapping(self, kf: int, frame: Frame, step: Step) -> None:
         """Hand keyframe ``kf``'s stages to the runner; everything they read from the graph is taken now."""
         detections: Handle
-        if frame.detections is None and self.settings.detector.enabled:
+        behind = self.live and sum(not idle([jobs]) for jobs in self.pending) >= LIVE_BEHIND
+        if frame.detections is None and self.settings.detector.enabled and behind:
+            detections, self.detections_skipped = Done(([], {})), self.detections_skipped + 1
+        elif frame.detections is None and self.settings.detector.enabled:
             detections = self.runner.submit(Lane.DETECT, stages.detect, self._get_detector(), frame.rgb)
         else:
             detections = Done((frame.detections or [], {}))
@@ -260,6 +285,15 @@ class SlamCore:
                 raise ValueError("keyframes without detections need a detector (detector.enabled)")
             self._detector = self.detector_factory()
         return self._detector
+
+    def apply_ready(self) -> bool:
+        """Live: apply the mapping of the oldest keyframes whose stages have all finished (none waited for);
+        True when one was applied."""
+        applied = False
+        while self.pending and idle([self.pending[0]]):
+            self._apply_mapping()
+            applied = True
+        return applied
 
     def _apply_mapping(self) -> None:
         """Take the oldest unapplied keyframe's mapping and put it into the map: its detections and landmark
@@ -350,50 +384,3 @@ class SlamCore:
             self.object_poses = list(poses)
             self.reposes += 1
         return poses
-
-    # ------------------------------------------------------------ the map
-
-    def cloud(self) -> np.ndarray:
-        """Sparse map points (N, 3) in the trajectory frame: every keyframe's samples at its current estimate."""
-        if not self.kf_points:
-            return np.zeros((0, 3), np.float32)
-        poses = self.graph.poses()
-        parts = [
-            pts @ poses[k][:3, :3].T.astype(np.float32) + poses[k][:3, 3].astype(np.float32)
-            for k, pts in enumerate(self.kf_points[: len(poses)])
-        ]
-        return np.concatenate(parts)
-
-    def object_list(self) -> list[dict]:
-        """Current objects in the frame of the trajectory (``objects.json`` entries)."""
-        if self.objects is None:
-            return []
-        landmarks = self.landmarks.positions() if self.landmarks is not None else {}
-        return [object_json(o, landmarks.get(o.id)) for o in self.objects_view]
-
-    def trajectory(self, tied_only: bool = False) -> Trajectory:
-        """Optimised poses of every processed frame (keyframe estimate composed with its offset); with
-        ``tied_only`` only those of frames tied to the map (``untied_frames`` are not)."""
-        records = [r for r in self.records if r.posed and self.segments.tied(r.keyframe)] if tied_only else self.records
-        if not records:
-            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
-        kf_poses = self.graph.poses()
-        poses = np.stack([kf_poses[r.keyframe] @ r.from_keyframe for r in records])
-        return Trajectory(np.array([r.timestamp for r in records]), poses)
-
-    def untied_frames(self) -> list[FrameRecord]:
-        """The frames whose keyframe's map segment is not joined to the map (yet)."""
-        if not self.segments.unjoined() and self.methods["lost"] == 0:
-            return []
-        return [r for r in self.records if not (r.posed and self.segments.tied(r.keyframe))]
-
-    def odometry_trajectory(self) -> Trajectory:
-        """The front-end (odometry) poses of every processed frame it posed."""
-        records = [r for r in self.records if r.posed]
-        if not records:
-            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
-        return Trajectory(np.array([r.timestamp for r in records]), np.stack([r.odometry for r in records]))
-
-    def loop_records(self) -> list[LoopRecord]:
-        """Every loop-closure candidate judged so far, oldest first."""
-        return list(self.loops.records) if self.loops is not None else []

@@ -56,3 +56,4 @@ class StepResult:
     loops: list[LoopRecord]
     objects_changed: bool
     timings: dict[str, float]
+    added: tuple[tuple[int, float], ...] = ()  # keyframes added in the step: (index, its frame's timestamp)

@@ -14,7 +14,7 @@ from collections.abc import Callable
 from graph.interface import Graph
 from loops.closer import LoopCloser
 from perception.frame import Frame
-from perception.frontend import Step
+from perception.keyframing import Step
 from perception.odometry import OdometrySettings, Relative
 from slam.segments import Segments
 

@@ -18,6 +18,7 @@ class Lane(Enum):
 
     DETECT = "detect"  # the ONNX detector (releases the GIL: overlaps the mapping of the keyframe before)
     MAP = "map"  # objects (association, clustering) and loop verification, keyframe by keyframe
+    KEYFRAME = "keyframe"  # live: a keyframe's features and factor, beside the tracking of the next frames
 
 
 class Handle(Protocol):

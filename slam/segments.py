@@ -12,7 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from enum import Enum
 
-from perception.frontend import Step
+from perception.keyframing import Step
 
 
 class TrackingState(str, Enum):  # noqa: UP042 - the value is what status reports
@@ -34,7 +34,7 @@ class TrackingState(str, Enum):  # noqa: UP042 - the value is what status report
             return cls.NEW_SEGMENT
         if not tied:
             return cls.RELOCALIZING
-        return cls.TRACKING if step.method in ("odometry", "features", "relocalized") else cls.PREDICTED
+        return cls.TRACKING if step.method in ("odometry", "tracked", "features", "relocalized") else cls.PREDICTED
 
 
 @dataclass

@@ -13,7 +13,7 @@ from pydantic import Field
 from graph.object_landmarks import LandmarkSettings
 from graph.settings import GraphSettings
 from loops.settings import LoopSettings
-from perception.frontend import KeyframeSettings
+from perception.keyframing import KeyframeSettings
 from perception.odometry import OdometrySettings
 
 if TYPE_CHECKING:  # the detector module imports onnxruntime

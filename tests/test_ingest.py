@@ -3,9 +3,15 @@
 from __future__ import annotations
 
 import threading
+import time
 
+from service.config import load_settings
 from service.ingest import IngestQueue
+from service.node import ServiceNode
 from service.protocol import Inspected, encode_frame, inspect_message
+from service.replay import frame_publisher
+from service.zenoh_session import open_session
+from sources import open_dataset
 from tests.conftest import make_frame
 
 
@@ -38,3 +44,40 @@ def test_a_waiting_consumer_wakes_for_a_frame_put_by_another_thread():
     q.put(_message(7))
     consumer.join(timeout=5.0)
     assert not consumer.is_alive() and got[0].message.seq == 7
+
+
+def test_live_ingest_takes_the_newest_frame_and_counts_the_older_ones_as_stale():
+    q = IngestQueue(10)
+    for i in range(5):
+        q.put(_message(i))
+    assert q.get_newest(timeout=0.1).message.seq == 4
+    assert (q.dropped, q.stale, len(q)) == (4, 4, 0)
+    q.put(_message(5))
+    assert q.get_newest(timeout=0.1).message.seq == 5 and q.stale == 4  # nothing older: nothing stale
+
+
+def test_a_live_service_tracks_the_freshest_frames_of_a_burst_and_accounts_for_every_frame():
+    settings = load_settings(None, {"detector": {"enabled": False}, "robot": "livetest", "ingest": {"live": True}})
+    session = open_session(settings.zenoh, "server", embedded=True)
+    data = open_dataset("synthetic:room?seed=0&frames=300&fps=30&width=320&height=240")
+    payloads = [encode_frame(data.frame(i)) for i in range(60)]
+    node = ServiceNode(settings, session)
+    try:
+        node.start()
+        pub = frame_publisher(session, f"{node.prefix}/rgbd")
+        for payload in payloads:  # a burst far faster than the pipeline: live keeps only the freshest
+            pub.put(payload)
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and not (node.stats.received == 60 and node.completed == 60):
+            time.sleep(0.05)
+        status = node.status()
+        trajectory = node.trajectory_reply()["poses"]
+    finally:
+        node.stop()
+        session.close()
+    dropped = status["frames_dropped_by_reason"]
+    assert status["frames_received"] == 60 and dropped["stale"] > 0 and dropped["queue"] == 0
+    assert status["frames_processed"] + status["frames_rejected_total"] + status["frames_dropped"] == 60
+    assert dropped["stale"] + dropped["queue"] == status["frames_dropped"]
+    assert trajectory[-1][0] == data.frame(59).timestamp  # the newest frame was tracked, not a queued old one
+    assert status["mapping"]["live"] and status["mapping"]["pending_keyframes"] <= 8

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from graph.geometry import motion_magnitude, relative
-from perception.frontend import KeyframeSettings, VisualOdometry
+from perception.frontend import VisualOdometry
 from perception.icp import icp_refine
+from perception.keyframing import KeyframeSettings
 from perception.odometry import FeatureExtractor, OdometrySettings, RelativePoseEstimator
 from perception.registration import depth_at_color_pixels, depth_in_color
 from sources import open_dataset

@@ -11,7 +11,7 @@ import pytest
 from rich.console import Console
 
 from bench.objects_family import family_seeds, keyframes, run_family_bench, worst_decile
-from perception.frontend import KeyframeSettings
+from perception.keyframing import KeyframeSettings
 from sources.family_paths import MAX_YAW_RATE_DEG_S, PATH_KINDS, heading_rates_deg_s
 from sources.family_render import plain_texture
 from sources.raycast import surface_texture

@@ -12,8 +12,9 @@ import pytest
 
 from graph.geometry import motion_magnitude, relative
 from perception.dense import align
-from perception.frontend import KeyframeSettings, VisualOdometry
+from perception.frontend import VisualOdometry
 from perception.icp import depth_agreement, icp_ambiguity, icp_pyramid
+from perception.keyframing import KeyframeSettings
 from service.config import load_settings
 from service.run import run_dataset
 from slam.segments import Segments

@@ -1,0 +1,28 @@
+"""The camera-rate benchmark (issue 28): ``objslam bench live``.
+
+Registered on ``bench.commands.bench_app`` when that module is imported (it imports this one at its end)."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+import typer
+
+from bench.commands import DatasetsOpt, WriteOpt, bench_app
+from service.cli_common import console
+
+LIVE_DATASETS = ("../shared/data/7scenes_redkitchen_1000", "synthetic:room?seed=3&frames=600")
+
+
+@bench_app.command("live")
+def bench_live(
+    dataset: DatasetsOpt = None,
+    frames: Annotated[int, typer.Option("--frames", help="frames of each dataset")] = 1000,
+    rate: Annotated[float, typer.Option("--rate", help="camera rate (frames/s)", min=1.0, max=1000.0)] = 30.0,
+    write: WriteOpt = None,
+) -> None:
+    """A dataset replayed at camera rate into `serve --live` (detector on, visual tracking): frames posed, pose
+    latency, mapping lag, drops by reason, ATE against the offline run."""
+    from bench.live import run_live_bench
+
+    run_live_bench(console, list(dataset or LIVE_DATASETS), frames, rate, write)

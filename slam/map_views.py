@@ -1,0 +1,83 @@
+"""The map as the SLAM core's readers see it: trajectories, objects, map points and loop records.
+
+Read-only views of ``slam.core.SlamCore``'s state, computed on demand (a status query or an output file), never
+during a frame's step.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+
+from graph.object_landmarks import ObjectLandmarks
+from graph.trajectory import Trajectory
+from graph.window import WindowedGraph
+from loops.archive import ColdLog
+from loops.closer import LoopCloser
+from loops.records import LoopRecord
+from perception.object_map import ObjectMapper, object_json
+from slam.records import FrameRecord
+from slam.segments import Segments
+
+
+class MapViews:
+    """The read side of ``SlamCore`` (its base class): what the core's state means as a map."""
+
+    graph: WindowedGraph
+    records: list[FrameRecord]
+    kf_points: ColdLog[np.ndarray]
+    objects: ObjectMapper | None
+    objects_view: list
+    landmarks: ObjectLandmarks | None
+    segments: Segments
+    methods: Counter[str]
+
+    @property
+    def loops(self) -> LoopCloser | None:
+        raise NotImplementedError
+
+    def cloud(self) -> np.ndarray:
+        """Sparse map points (N, 3) in the trajectory frame: every keyframe's samples at its current estimate."""
+        if not self.kf_points:
+            return np.zeros((0, 3), np.float32)
+        poses = self.graph.poses()
+        parts = [
+            pts @ poses[k][:3, :3].T.astype(np.float32) + poses[k][:3, 3].astype(np.float32)
+            for k, pts in enumerate(self.kf_points[: len(poses)])
+        ]
+        return np.concatenate(parts)
+
+    def object_list(self) -> list[dict]:
+        """Current objects in the frame of the trajectory (``objects.json`` entries)."""
+        if self.objects is None:
+            return []
+        landmarks = self.landmarks.positions() if self.landmarks is not None else {}
+        return [object_json(o, landmarks.get(o.id)) for o in self.objects_view]
+
+    def trajectory(self, tied_only: bool = False) -> Trajectory:
+        """Optimised poses of every processed frame (keyframe estimate composed with its offset); with
+        ``tied_only`` only those of frames tied to the map (``untied_frames`` are not)."""
+        records = [r for r in self.records if r.posed and self.segments.tied(r.keyframe)] if tied_only else self.records
+        if not records:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        kf_poses = self.graph.poses()
+        poses = np.stack([kf_poses[r.keyframe] @ r.from_keyframe for r in records])
+        return Trajectory(np.array([r.timestamp for r in records]), poses)
+
+    def untied_frames(self) -> list[FrameRecord]:
+        """The frames whose keyframe's map segment is not joined to the map (yet)."""
+        if not self.segments.unjoined() and self.methods["lost"] == 0:
+            return []
+        return [r for r in self.records if not (r.posed and self.segments.tied(r.keyframe))]
+
+    def odometry_trajectory(self) -> Trajectory:
+        """The front-end (odometry) poses of every processed frame it posed."""
+        records = [r for r in self.records if r.posed]
+        if not records:
+            return Trajectory(np.zeros(0), np.zeros((0, 4, 4)))
+        return Trajectory(np.array([r.timestamp for r in records]), np.stack([r.odometry for r in records]))
+
+    def loop_records(self) -> list[LoopRecord]:
+        """Every loop-closure candidate judged so far, oldest first."""
+        return list(self.loops.records) if self.loops is not None else []
