@@ -19,10 +19,14 @@ def bench_live(
     dataset: DatasetsOpt = None,
     frames: Annotated[int, typer.Option("--frames", help="frames of each dataset")] = 1000,
     rate: Annotated[float, typer.Option("--rate", help="camera rate (frames/s)", min=1.0, max=1000.0)] = 30.0,
+    profile: Annotated[
+        bool, typer.Option("--profile", help="record serve with py-spy: its top costs per frame")
+    ] = False,
     write: WriteOpt = None,
 ) -> None:
-    """A dataset replayed at camera rate into `serve --live` (detector on, visual tracking): frames posed, pose
-    latency, mapping lag, drops by reason, ATE against the offline run."""
+    """Datasets replayed at camera rate into `serve` (detector on, visual tracking), before issue 28's changes,
+    with flow tracking, and live: frames posed, pose latency, mapping lag, drops by reason, ATE against the
+    offline run."""
     from bench.live import run_live_bench
 
-    run_live_bench(console, list(dataset or LIVE_DATASETS), frames, rate, write)
+    run_live_bench(console, list(dataset or LIVE_DATASETS), frames, rate, profile, write)

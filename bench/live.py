@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from rich.console import Console
 
+from bench.profile_stages import top_costs
 from bench.report import StealMeter, load_note, markdown_table, record, show_table
 from bench.rig import free_port, query_status, router, start_serve, stop_serve, wait_for_status
 from evaluation.trajectory_metrics import evaluate
@@ -35,6 +36,7 @@ from sources import open_dataset
 from sources.base import DatasetView, Subset
 
 ROBOT = "live"
+PROFILE_HZ = 50
 POSED_TARGET, LATENCY_P95_TARGET_MS, MAPPING_P95_TARGET_MS, FRONTEND_FPS_TARGET = 0.95, 60.0, 1000.0, 60.0
 SETTLE_S = 20.0  # after the last frame: the mapping of the last keyframes, then the final status
 
@@ -46,12 +48,15 @@ def _trajectory(reply: dict[str, Any]) -> Trajectory:
     return Trajectory(np.array([r[0] for r in rows]), np.stack([pose_from_tum(r[1:]) for r in rows]))
 
 
-def serve_live(payloads: list[bytes], rate_hz: float, env: dict[str, str]) -> tuple[dict, dict, float]:
-    """Publish ``payloads`` at ``rate_hz`` into a ``serve`` subprocess; its final status, its trajectory reply
-    and the publishing seconds."""
+def serve_live(
+    payloads: list[bytes], rate_hz: float, env: dict[str, str], profile: Path | None = None
+) -> tuple[dict, dict, float]:
+    """Publish ``payloads`` at ``rate_hz`` into a ``serve`` subprocess (under py-spy writing ``profile``); its
+    final status, its trajectory reply and the publishing seconds."""
     port = free_port()
     session = router(port)
-    serve, log = start_serve(f"tcp/127.0.0.1:{port}", ROBOT, env)
+    spy = ["py-spy", "record", "-r", str(PROFILE_HZ), "-f", "raw", "--nonblocking", "-o", str(profile), "--"]
+    serve, log = start_serve(f"tcp/127.0.0.1:{port}", ROBOT, env, spy if profile is not None else None)
     key = f"objslam/{ROBOT}"
     try:
         wait_for_status(session, f"{key}/status", serve, log)
@@ -75,7 +80,7 @@ def serve_live(payloads: list[bytes], rate_hz: float, env: dict[str, str]) -> tu
         if status is None or trajectory is None:
             raise RuntimeError(f"objslam serve stopped answering: {log.read_text()[-2000:]}")
     finally:
-        stop_serve(serve)
+        stop_serve(serve, wrapped=profile is not None)
         session.close()
         log.unlink(missing_ok=True)
     return status, trajectory, published
@@ -103,28 +108,47 @@ def first_frames(dataset: str, frames: int) -> BareCamera:
     return BareCamera(Subset(data, np.arange(min(frames, len(data))), f"first {frames}"))
 
 
-def measure(dataset: str, frames: int, rate_hz: float) -> dict[str, Any]:
+VARIANTS: dict[str, dict[str, str]] = {
+    "features, every frame in order (before issue 28)": {"OBJSLAM_ODOMETRY__TRACKER": "features"},
+    "flow between keyframes, every frame in order": {},
+    "flow, live (`serve --live`: freshest frame, keyframes beside tracking)": {"OBJSLAM_INGEST__LIVE": "true"},
+}
+
+
+def measure(dataset: str, frames: int, rate_hz: float, profile_dir: Path | None) -> list[dict[str, Any]]:
+    """Each variant's run of ``dataset`` (profiled into ``profile_dir``), with the offline ATE."""
     bare = first_frames(dataset, frames)
     payloads = [encode_frame(bare.frame(i)) for i in range(len(bare))]
-    load, steal = [os.getloadavg()[0]], StealMeter()
-    status, reply, published = serve_live(payloads, rate_hz, {"OBJSLAM_INGEST__LIVE": "true"})
-    load.append(os.getloadavg()[0])
-    traj = _trajectory(reply)
-    error = evaluate(traj, bare.ground_truth)
-    lat = status["latency"]
-    return {
-        "dataset": dataset,
-        "frames": len(payloads),
-        "rate": rate_hz,
-        "publish_s": published,
-        "posed": len(traj),
-        "status": status,
-        "latency": lat,
-        "ate": error.ate_rmse_m if error is not None else None,
-        "offline_ate": offline_ate(dataset, len(payloads)),
-        "load": sum(load) / len(load),
-        "steal": steal.percent(),
-    }
+    offline = offline_ate(dataset, len(payloads))
+    if profile_dir is not None:
+        profile_dir.mkdir(parents=True, exist_ok=True)
+    results = []
+    for k, (variant, env) in enumerate(VARIANTS.items()):
+        load, steal = [os.getloadavg()[0]], StealMeter()
+        profile = profile_dir / f"{k}.txt" if profile_dir is not None else None
+        with tempfile.TemporaryDirectory() as state:  # a robot keeps its map: checkpoints after every keyframe
+            status, reply, published = serve_live(payloads, rate_hz, {**env, "OBJSLAM_STATE_DIR": state}, profile)
+        load.append(os.getloadavg()[0])
+        traj = _trajectory(reply)
+        error = evaluate(traj, bare.ground_truth)
+        results.append(
+            {
+                "dataset": dataset,
+                "variant": variant,
+                "frames": len(payloads),
+                "rate": rate_hz,
+                "publish_s": published,
+                "posed": len(traj),
+                "status": status,
+                "latency": status["latency"],
+                "ate": error.ate_rmse_m if error is not None else None,
+                "offline_ate": offline,
+                "load": sum(load) / len(load),
+                "steal": steal.percent(),
+                "profile": top_costs(profile, PROFILE_HZ, len(payloads)) if profile is not None else None,
+            }
+        )
+    return results
 
 
 def _p(lat: dict[str, Any], stage: str, keys: tuple[str, ...] = ("p50_ms", "p95_ms")) -> str:
@@ -145,7 +169,7 @@ def rows_of(r: dict[str, Any]) -> list[list[str]]:
     p3 = ("p50_ms", "p95_ms", "p99_ms")
     return [
         [
-            f"`{r['dataset']}`",
+            f"`{r['dataset']}`: {r['variant']}",
             f"{n} at {r['rate']:.0f} Hz ({n / r['publish_s']:.1f}/s)",
             f"**{r['posed']} ({r['posed'] / n:.1%})**",
             f"**{_p(lat, 'ingest_to_graph', p3)}**",
@@ -159,7 +183,7 @@ def rows_of(r: dict[str, Any]) -> list[list[str]]:
 
 
 HEADER = [
-    "dataset",
+    "dataset: configuration",
     "frames published",
     "frames posed",
     "pose latency p50 / p95 / p99 (ms)",
@@ -171,8 +195,26 @@ HEADER = [
 ]
 
 
-def run_live_bench(console: Console, datasets: list[str], frames: int, rate_hz: float, write: Path | None) -> list:
-    results = [measure(d, frames, rate_hz) for d in datasets]
+def profile_table(results: list[dict[str, Any]]) -> str:
+    """The top costs of each profiled variant: function, ms per frame, share of the samples."""
+    blocks = []
+    for r in results:
+        if r["profile"]:
+            rows = [[f"`{f}`", f"{ms:.1f}", f"{share:.0%}"] for f, ms, share in r["profile"]]
+            title = f"Profile of serve, {r['dataset']}: {r['variant']}"
+            blocks.append(f"{title}\n\n" + markdown_table(["function (inclusive)", "ms per frame", "of samples"], rows))
+    return "\n\n".join(blocks)
+
+
+def run_live_bench(
+    console: Console, datasets: list[str], frames: int, rate_hz: float, profile: bool, write: Path | None
+) -> list:
+    with tempfile.TemporaryDirectory() as tmp:
+        results = [
+            r
+            for i, d in enumerate(datasets)
+            for r in measure(d, frames, rate_hz, Path(tmp) / str(i) if profile else None)
+        ]
     rows = [row for r in results for row in rows_of(r)]
     targets = [
         "targets",
@@ -186,13 +228,19 @@ def run_live_bench(console: Console, datasets: list[str], frames: int, rate_hz: 
         "<= offline",
     ]
     table = markdown_table(HEADER, [*rows, targets])
+    profiles = profile_table(results)
+    if profiles:
+        console.print(profiles)
+        table += "\n\n" + profiles
     show_table(console, "live: camera rate into serve --live", HEADER, [*rows, targets])
     load = max(r["load"] for r in results)
     steal = max(r["steal"] for r in results)
     notes = (
         "Each dataset's first frames, without odometry and detections, encoded before the clock starts and "
-        "published at the camera rate from this process into `objslam serve` with `ingest.live` (`serve --live`) "
-        "in a subprocess behind a zenoh router, on the same two cores. Frames posed: poses in the final "
+        "published at the camera rate from this process into `objslam serve --state-dir` (the map store "
+        "checkpointed after every keyframe) in a subprocess behind a zenoh router, on the same two cores; "
+        "three configurations: ORB features on every frame and every frame in order (the tracking before issue "
+        "28), optical flow between keyframes, and live (`serve --live`). Frames posed: poses in the final "
         "trajectory reply. Pose latency: arrival in the subscriber callback to the frame's pose in the graph. "
         "Front end: the tracking of one frame on the worker (frames/s = 1000 / p50). Mapping lag: a keyframe's "
         "arrival to its objects and loop closures applied to the map. Keyframes not detected: arrived while "
@@ -203,7 +251,7 @@ def run_live_bench(console: Console, datasets: list[str], frames: int, rate_hz: 
     path = record(
         "live",
         "Live at camera rate",
-        f"objslam bench live {spec} --frames {frames} --rate {rate_hz:g}",
+        f"objslam bench live {spec} --frames {frames} --rate {rate_hz:g}" + (" --profile" if profile else ""),
         table,
         notes,
         write,

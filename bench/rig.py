@@ -54,12 +54,16 @@ def require_status(session: zenoh.Session, key: str, timeout: float = 2.0) -> di
     return status
 
 
-def start_serve(endpoint: str, robot: str, env: dict[str, str] | None = None) -> tuple[subprocess.Popen, Path]:
-    """``objslam serve`` as a client of ``endpoint``; its log goes to the returned file."""
+def start_serve(
+    endpoint: str, robot: str, env: dict[str, str] | None = None, prefix: list[str] | None = None
+) -> tuple[subprocess.Popen, Path]:
+    """``objslam serve`` as a client of ``endpoint`` (``prefix``: a command it runs under, e.g. a profiler); its
+    log goes to the returned file."""
     log = Path(tempfile.mkstemp(prefix=f"objslam-serve-{robot}-", suffix=".log")[1])
+    command = [sys.executable, "-m", "service", "serve", "--mode", "client", "--connect", endpoint, "--robot", robot]
     with log.open("w") as out:
         proc = subprocess.Popen(
-            [sys.executable, "-m", "service", "serve", "--mode", "client", "--connect", endpoint, "--robot", robot],
+            [*(prefix or []), *command],
             env={**os.environ, **(env or {})},
             stdout=out,
             stderr=subprocess.STDOUT,
@@ -82,8 +86,15 @@ def wait_for_status(
     raise RuntimeError(f"objslam serve did not answer on {key} within {timeout:.0f} s")
 
 
-def stop_serve(proc: subprocess.Popen) -> None:
-    proc.terminate()
+def stop_serve(proc: subprocess.Popen, wrapped: bool = False) -> None:
+    """SIGTERM to serve, then wait; SIGKILL after 30 s. ``wrapped``: ``proc`` is the command serve runs under
+    (``start_serve``'s prefix): serve, its child, gets the signal, and the profiler writes its output as it exits."""
+    children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children")
+    kids = children.read_text().split() if wrapped and children.exists() else []
+    if kids:
+        os.kill(int(kids[0]), 15)
+    else:
+        proc.terminate()
     try:
         proc.wait(timeout=30)
     except subprocess.TimeoutExpired:

@@ -16,10 +16,7 @@ from graph.geometry import inverse, motion_magnitude, relative
 from perception.fallback import FallbackChain
 from perception.frame import CameraModel, Frame
 from perception.hypotheses import Hypothesis, scaled_motion
-from perception.icp import (
-    depth_agreement,
-    icp_refine,
-)
+from perception.icp import IcpTarget, depth_agreement, icp_refine, icp_target
 from perception.keyframe_deferral import DeferredKeyframes
 from perception.keyframe_tracker import KeyframeTracker
 from perception.keyframing import KeyframeSettings, Step
@@ -54,6 +51,7 @@ class VisualOdometry:
         self.chain = FallbackChain(camera, config, self.estimator)
         self.tracker = KeyframeTracker(config.flow_points, config.flow_max_fb_px)  # between keyframes (flow)
         self.deferral: DeferredKeyframes | None = None  # live: keyframes made on another thread
+        self._targets: dict[int, tuple[np.ndarray, IcpTarget]] = {}  # id(keyframe depth) -> (depth, ICP target)
         self._kf_pose: np.ndarray | None = None
         self._kf_features: Features | None = None
         self._kf_depth: np.ndarray | None = None
@@ -287,13 +285,20 @@ class VisualOdometry:
         """Depth ICP from the PnP estimate (``_small_correction``)."""
         if not self.config.icp:
             return T_pnp
-        result = icp_refine(depth, ref_depth, self.camera.depth, T_pnp)
+        result = icp_refine(depth, self._icp_target(ref_depth), self.camera.depth, T_pnp)
         if result is None:
             return T_pnp
         if not self._small_correction(T_pnp, result.T):
             return T_pnp
         self.icp_used += 1
         return result.T
+
+    def _icp_target(self, ref_depth: np.ndarray) -> IcpTarget:
+        """``ref_depth`` (a keyframe's) prepared as an ICP target once: every frame refined against it reuses it."""
+        held = self._targets.get(id(ref_depth))
+        if held is None or held[0] is not ref_depth:
+            held = self._targets[id(ref_depth)] = (ref_depth, icp_target(ref_depth, self.camera.depth))
+        return held[1]
 
     def _small_correction(self, T_pnp: np.ndarray, T_icp: np.ndarray) -> bool:
         """ICP moved the features' pose by at most ``icp_max_correction_m`` / ``_deg`` (else it is not used)."""
@@ -368,6 +373,8 @@ class VisualOdometry:
                 else []
             )
         self._kf_pose, self._kf_features, self._kf_depth = pose, features, depth
+        kept = {id(depth), *(id(d) for _, d in self._history)}  # ICP targets of keyframes still refined against
+        self._targets = {k: v for k, v in self._targets.items() if k in kept}
         flow = self.config.tracker == "flow"
         if gray is None and (flow or self.config.fallback):
             gray = gray_image(frame)

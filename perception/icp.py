@@ -44,13 +44,22 @@ def smooth_depth(
     return np.where(valid, out, np.nan)
 
 
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` over the last axis of length 3, written out (several times faster on image-sized arrays)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), np.result_type(a, b))
+    out[..., 0] = a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1]
+    out[..., 1] = a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2]
+    out[..., 2] = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    return out
+
+
 def normal_map(vertices: np.ndarray) -> np.ndarray:
     """Unit normals from central differences of the vertex map (NaN at borders and holes)."""
     dx = np.full_like(vertices, np.nan)
     dy = np.full_like(vertices, np.nan)
     dx[:, 1:-1] = vertices[:, 2:] - vertices[:, :-2]
     dy[1:-1] = vertices[2:] - vertices[:-2]
-    n = np.cross(dx, dy)
+    n = cross(dx, dy)
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         n = n / norm
@@ -85,9 +94,27 @@ def correspond(
     return points[ok], dst_v.reshape(-1, 3)[idx], dst_n.reshape(-1, 3)[idx]
 
 
+@dataclass(frozen=True)
+class IcpTarget:
+    """The destination side of ICP at one resolution: vertex and normal maps and their intrinsics (prepared
+    once per depth image: a keyframe is the target of every frame refined against it)."""
+
+    vertices: np.ndarray
+    normals: np.ndarray
+    K: Intrinsics
+    level: int
+
+
+def icp_target(dst_depth: np.ndarray, K: Intrinsics, level: int = 2) -> IcpTarget:
+    """``dst_depth`` prepared as an ICP target at 1/``level`` resolution."""
+    depth, K_level = downsample(dst_depth, K, level)
+    vertices = vertex_map(smooth_depth(depth, 5), K_level)
+    return IcpTarget(vertices, normal_map(vertices), K_level, level)
+
+
 def icp_refine(
     src_depth: np.ndarray,
-    dst_depth: np.ndarray,
+    dst_depth: np.ndarray | IcpTarget,
     K: Intrinsics,
     T_init: np.ndarray,
     level: int = 2,
@@ -98,16 +125,17 @@ def icp_refine(
 ) -> IcpResult | None:
     """Refine ``T_dst_src`` (maps src camera points into the dst camera) by point-to-plane ICP.
 
-    Both images are used at 1/``level`` resolution, the source further subsampled by ``step``.
-    Returns None when too few correspondences survive (degenerate geometry or a bad initial guess).
+    Both images are used at 1/``level`` resolution, the source further subsampled by ``step``; the target may
+    be given prepared (``icp_target``, at the same level). Returns None when too few correspondences survive
+    (degenerate geometry or a bad initial guess).
     """
+    target = dst_depth if isinstance(dst_depth, IcpTarget) else icp_target(dst_depth, K, level)
+    if target.level != level:
+        raise ValueError(f"an ICP target prepared at level {target.level} used at level {level}")
     src_depth, _ = downsample(src_depth, K, level)
-    dst_depth, K = downsample(dst_depth, K, level)
-    src_depth, dst_depth = smooth_depth(src_depth, 5), smooth_depth(dst_depth, 5)
-    src = vertex_map(src_depth, K)[::step, ::step].reshape(-1, 3)
+    dst_v, dst_n, K = target.vertices, target.normals, target.K
+    src = vertex_map(smooth_depth(src_depth, 5), K)[::step, ::step].reshape(-1, 3)
     src = src[np.isfinite(src[:, 2])]
-    dst_v = vertex_map(dst_depth, K)
-    dst_n = normal_map(dst_v)
     T = T_init.copy()
     A = np.zeros((0, 6))
     residual = np.zeros(0)
@@ -115,11 +143,13 @@ def icp_refine(
         gate = max_dist[0] + (max_dist[1] - max_dist[0]) * it / max(1, iterations - 1)
         pp, q, n = correspond(src @ T[:3, :3].T + T[:3, 3], dst_v, dst_n, K)
         r = np.einsum("ij,ij->i", pp - q, n)
-        good = np.isfinite(r) & (np.linalg.norm(pp - q, axis=1) < gate)
+        d = pp - q
+        with np.errstate(invalid="ignore"):
+            good = np.isfinite(r) & (np.einsum("ij,ij->i", d, d) < gate * gate)
         if good.sum() < min_inliers:
             return None
         pp, n, residual = pp[good], n[good], r[good]
-        A = np.hstack([np.cross(pp, n), n])
+        A = np.hstack([cross(pp, n), n])
         xi = np.linalg.solve(A.T @ A + 1e-9 * np.eye(6), -A.T @ residual)
         T = _exp_se3(xi) @ T
         if np.linalg.norm(xi) < 1e-6:
