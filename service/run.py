@@ -103,6 +103,16 @@ def serve(settings: Settings, stop: threading.Event | None = None) -> int:
     except BaseException:
         session.close()
         raise
+    viewer: ViewerFeed | None = None
+    if viewer_wanted(settings.viewer, settings.viewer.rrd):  # before the node answers: rerun's import takes the GIL
+        from service.viewer_feed import open_viewer  # rerun only when wanted
+
+        try:
+            viewer = open_viewer(node, session, settings.viewer, settings.viewer.rrd)
+        except BaseException:
+            node.stop()
+            session.close()
+            raise
     node.start()
     bridge = None
     if settings.ros2.enabled:  # ROS 2 topics on rmw_zenoh keys (rosbags imported only then)
@@ -111,12 +121,7 @@ def serve(settings: Settings, stop: threading.Event | None = None) -> int:
         bridge = Ros2Bridge(node)
         bridge.start(session)
     log.info("objslam serve: robot %s on %s, listening %s", settings.robot, node.prefix, settings.zenoh.listen)
-    viewer: ViewerFeed | None = None
     try:
-        if viewer_wanted(settings.viewer, settings.viewer.rrd):
-            from service.viewer_feed import open_viewer  # rerun only when wanted
-
-            viewer = open_viewer(node, session, settings.viewer, settings.viewer.rrd)
         while not stop.wait(0.5):
             pass
     finally:

@@ -26,7 +26,7 @@ import rerun.blueprint as rrb
 from scipy.spatial.transform import Rotation
 
 from graph.trajectory import Trajectory
-from perception.frame import CameraModel
+from perception.frame import CameraModel, Detection
 from service.map_summary import MapSummary
 from service.protocol import Inspected
 
@@ -65,6 +65,8 @@ class ViewerUpdate:
     trajectory: Trajectory | None = None  # given when the graph moved
     odometry: Trajectory | None = None
     message: Inspected | None = None  # a keyframe's frame, its images still encoded
+    detections: list[Detection] | None = None  # that keyframe's boxes (None: the ones its message carries)
+    late_boxes: tuple[int, float, list[Detection]] | None = None  # (frame, time, boxes) of an earlier keyframe
     points: np.ndarray | None = None
     ground_truth: np.ndarray | None = None  # (N, 3) positions aligned to the trajectory
 
@@ -95,9 +97,17 @@ def class_colour(label: str) -> tuple[int, int, int]:
 
 def ellipsoid(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Half-axes (``SIGMAS`` standard deviations) and rotation quaternion (x, y, z, w) of a 3x3 covariance."""
-    values, vectors = np.linalg.eigh(np.asarray(cov, float))
-    if np.linalg.det(vectors) < 0:  # a rotation, not a reflection
-        vectors[:, -1] *= -1
+    half, quats = ellipsoids(np.asarray(cov, float)[None])
+    return half[0], quats[0]
+
+
+def ellipsoids(covs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``ellipsoid`` of each of N 3x3 covariances at once: half-axes (N, 3) and quaternions (N, 4)."""
+    covs = np.asarray(covs, float).reshape(-1, 3, 3)
+    if not len(covs):
+        return np.zeros((0, 3)), np.zeros((0, 4))
+    values, vectors = np.linalg.eigh(covs)
+    vectors[np.linalg.det(vectors) < 0, :, -1] *= -1  # rotations, not reflections
     half = SIGMAS * np.sqrt(np.clip(values, 1e-8, None))
     return half, Rotation.from_matrix(vectors).as_quat()
 
@@ -119,29 +129,35 @@ class ViewerSink:
         self._epoch: bool | None = None
         self._objects_key: object = None
         self._loops_key: object = None
-        self._positions: dict[float, np.ndarray] = {}
+        self._stamps, self._positions = np.zeros(0), np.zeros((0, 3))  # the trajectory's, by time
         self.rec.log("world", rr.ViewCoordinates.RDF, static=True)
         if camera is not None:
             self._log_pinhole(camera)
 
     def log(self, update: ViewerUpdate) -> None:
         """Everything in ``update`` that changed since the last one."""
-        self._set_time(update)
+        if update.late_boxes is not None:  # at the time its keyframe's image was logged
+            self._set_time(*update.late_boxes[:2])
+            self._log_boxes(update.late_boxes[2])
+        self._set_time(update.frame, update.time)
         if update.pose is not None:
             self.rec.log("world/camera", rr.Transform3D(translation=update.pose[:3, 3], mat3x3=update.pose[:3, :3]))
         if update.message is not None:
             self._log_images(update.message)
+            dets = update.detections if update.detections is not None else update.message.detections
+            self._log_boxes(dets or [])
         if update.trajectory is not None:
             self._log_trajectory("world/trajectory", update.trajectory, OPTIMISED)
-            t, p = update.trajectory.timestamps, update.trajectory.poses[:, :3, 3]
-            self._positions = dict(zip(map(float, t), p, strict=True))
+            order = np.argsort(update.trajectory.timestamps, kind="stable")
+            self._stamps = np.asarray(update.trajectory.timestamps, float)[order]
+            self._positions = update.trajectory.poses[order, :3, 3]
         if update.odometry is not None:
             self._log_trajectory("world/odometry", update.odometry, ODOMETRY)
         summary = update.summary
         if summary.objects_key != self._objects_key:
             self._log_objects(summary.objects)
             self._objects_key = summary.objects_key
-        if summary.loops_key != self._loops_key or update.trajectory is not None:
+        if summary.loops_key != self._loops_key or (update.trajectory is not None and summary.loops):
             self._log_loops(summary.loops)
             self._loops_key = summary.loops_key
         if update.points is not None:
@@ -150,14 +166,14 @@ class ViewerSink:
         if update.ground_truth is not None:
             self._log_strip("world/ground_truth", update.ground_truth, TRUTH, "ground truth (aligned)")
 
-    def _set_time(self, update: ViewerUpdate) -> None:
-        self.rec.set_time("frame", sequence=update.frame)
+    def _set_time(self, frame: int, when: float) -> None:
+        self.rec.set_time("frame", sequence=frame)
         if self._epoch is None:
-            self._epoch = update.time > EPOCH_S
+            self._epoch = when > EPOCH_S
         if self._epoch:
-            self.rec.set_time("sensor_time", timestamp=update.time)
+            self.rec.set_time("sensor_time", timestamp=when)
         else:
-            self.rec.set_time("sensor_time", duration=update.time)
+            self.rec.set_time("sensor_time", duration=when)
 
     def _log_pinhole(self, camera: CameraModel) -> None:
         self.camera = camera
@@ -172,7 +188,7 @@ class ViewerSink:
         )
 
     def _log_images(self, message: Inspected) -> None:
-        """Colour, depth (when registered to colour) and the frame's detection boxes, its images as they came."""
+        """Colour and depth (when registered to colour) of a keyframe, its images as they came."""
         if self.camera is None or self.camera != message.camera:
             self._log_pinhole(message.camera)
         camera, meta = message.camera, message.color_meta
@@ -189,7 +205,8 @@ class ViewerSink:
             else:  # u16le
                 d = np.frombuffer(message.depth, "<u2").reshape(message.depth_meta["height"], -1)
                 self.rec.log("world/camera/depth", rr.DepthImage(d, meter=camera.depth_scale))
-        dets = message.detections or []
+
+    def _log_boxes(self, dets: list[Detection]) -> None:
         self.rec.log(
             "world/camera/detections",
             rr.Boxes2D(
@@ -208,13 +225,13 @@ class ViewerSink:
         self.rec.log(entity, rr.LineStrips3D([strip], colors=[colour], radii=0.01, labels=label))
 
     def _log_objects(self, objects: list[dict]) -> None:
-        axes = [ellipsoid(np.asarray(o["cov"])) for o in objects]
+        half, quats = ellipsoids(np.array([o["cov"] for o in objects], float))
         self.rec.log(
             "world/objects",
             rr.Ellipsoids3D(
                 centers=np.array([o["mean"] for o in objects], float).reshape(-1, 3),
-                half_sizes=np.array([a[0] for a in axes], float).reshape(-1, 3),
-                quaternions=np.array([a[1] for a in axes], float).reshape(-1, 4),
+                half_sizes=half,
+                quaternions=quats,
                 colors=[class_colour(o["label"]) for o in objects],
                 labels=[f"{o['label']} #{o['id']} ({o['n_observations']} obs)" for o in objects],
                 show_labels=True,
@@ -234,7 +251,7 @@ class ViewerSink:
         for accepted, entity, colour in ((True, "accepted", ACCEPTED), (False, "rejected", REJECTED)):
             segments, labels = [], []
             for r in loops:
-                a, b = self._positions.get(float(r["match_t"])), self._positions.get(float(r["query_t"]))
+                a, b = self._position(float(r["match_t"])), self._position(float(r["query_t"]))
                 if bool(r["accepted"]) == accepted and a is not None and b is not None:
                     segments.append(np.stack([a, b]))
                     labels.append(r["source"] if accepted else str(r.get("reason")))
@@ -242,3 +259,8 @@ class ViewerSink:
                 f"world/loops/{entity}",
                 rr.LineStrips3D(segments, colors=[colour] * len(segments), radii=0.008, labels=labels),
             )
+
+    def _position(self, timestamp: float) -> np.ndarray | None:
+        """The optimised position of the frame at ``timestamp``, None when it is not in the trajectory."""
+        i = int(np.searchsorted(self._stamps, timestamp))
+        return self._positions[i] if i < len(self._stamps) and self._stamps[i] == timestamp else None

@@ -6,6 +6,7 @@ import subprocess
 import threading
 from collections import defaultdict
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -13,12 +14,17 @@ from rerun.chunk import RrdReader
 from typer.testing import CliRunner
 
 import service.viewer_feed
+from perception.frame import Detection
 from service.cli import app
 from service.config import load_settings
+from service.protocol import encode_frame
 from service.run import run_dataset
 from service.viewer import ViewerSink, class_colour, decimate, ellipsoid
 from service.viewer_cli import viewer_overrides
 from service.viewer_connect import native_viewer, open_outlets, rerun_executable
+from service.viewer_feed import CoreTracks, Keyframe, ViewerFeed
+from slam.build import build_core
+from sources import open_dataset
 from tests.conftest import free_port
 
 pytestmark = pytest.mark.integration
@@ -160,3 +166,44 @@ def test_decimation_keeps_the_ends_and_colours_are_fixed_per_class():
     d = decimate(pts, 2000)
     assert len(d) == 2000 and (d[0] == pts[0]).all() and (d[-1] == pts[-1]).all()
     assert class_colour("chair") == class_colour("chair") and len({class_colour(c) for c in "abcdefgh"}) > 3
+
+
+def test_the_feed_copies_the_core_s_trajectories_a_few_new_frames_at_a_time():
+    """``CoreTracks`` copies only the new records (and the keyframe poses when the graph moved), yet composes
+    the same trajectories as the core, with the keyframes among the new frames."""
+    settings = _settings()
+    core, data, tracks = build_core(settings), open_dataset(SCENE), CoreTracks()
+    keyframes = []
+    for i in range(len(data)):
+        core.step(data.frame(i))
+        if i % 7 == 6 or i == len(data) - 1:
+            tracks.take(core)
+            keyframes += tracks.new_keyframes()
+            optimised, odometry = tracks.trajectories()
+            expected = core.trajectory(tied_only=True)
+            assert np.array_equal(optimised.timestamps, expected.timestamps)
+            assert np.allclose(optimised.poses, expected.poses)
+            assert np.allclose(odometry.poses, core.odometry_trajectory().poses)
+    assert [(k.index, k.timestamp) for k in keyframes] == [
+        (r.keyframe, r.timestamp) for r in core.records if r.is_keyframe
+    ]
+    assert tracks.take(core) is False  # nothing moved: the keyframe poses are not read again
+
+
+def test_a_keyframe_s_image_is_its_own_frame_with_the_core_s_boxes_when_ready():
+    """The tap holds newer frames than the keyframe: the keyframe's own message is found by its timestamp; its
+    boxes are the frame's until the core's detections of it come, then those, at the image's time."""
+    data = open_dataset(SCENE)
+    feed = ViewerFeed(SimpleNamespace(limits=_settings().ingest), None, _settings().viewer)  # type: ignore[arg-type]
+    for i in range(10):
+        feed._on_frame(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda i=i: encode_frame(data.frame(i)))))
+    kf_time = data.frame(3).timestamp
+    feed._keyframes = [Keyframe(1, kf_time)]
+    message, boxes = feed._keyframe_message({1: None}, frame=9, when=data.frame(9).timestamp)
+    assert message is not None and message.timestamp == kf_time and feed.images == 1
+    assert boxes == (message.detections or [])
+    assert feed._late_boxes({1: None}) is None  # the core's detections are not ready yet
+    core_boxes = [Detection("chair", 0.9, (1.0, 2.0, 30.0, 40.0))]
+    assert feed._late_boxes({1: core_boxes}) == (9, data.frame(9).timestamp, core_boxes)
+    assert feed._late_boxes({1: core_boxes}) is None  # logged once
+    assert feed._keyframe_message({1: core_boxes}, 10, 0.0) == (None, None)  # shown already
