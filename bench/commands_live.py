@@ -11,7 +11,7 @@ import typer
 from bench.commands import DatasetsOpt, WriteOpt, bench_app
 from service.cli_common import console
 
-LIVE_DATASETS = ("../shared/data/7scenes_redkitchen_1000", "synthetic:room?seed=3&frames=600")
+LIVE_DATASETS = ("../shared/data/7scenes_redkitchen_1000", "synthetic:family?seed=1001&frames=600")  # held out
 
 
 @bench_app.command("live")
