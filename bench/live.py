@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -48,6 +50,15 @@ def _trajectory(reply: dict[str, Any]) -> Trajectory:
     return Trajectory(np.array([r[0] for r in rows]), np.stack([pose_from_tum(r[1:]) for r in rows]))
 
 
+def py_spy() -> str:
+    """The py-spy executable: beside this Python (the project's venv, a test dependency), else on PATH."""
+    beside = Path(sys.executable).parent / "py-spy"
+    found = str(beside) if beside.exists() else shutil.which("py-spy")
+    if found is None:
+        raise RuntimeError("--profile needs py-spy (pip install py-spy, a test dependency of objslam)")
+    return found
+
+
 def serve_live(
     payloads: list[bytes], rate_hz: float, env: dict[str, str], profile: Path | None = None
 ) -> tuple[dict, dict, float]:
@@ -55,7 +66,7 @@ def serve_live(
     final status, its trajectory reply and the publishing seconds."""
     port = free_port()
     session = router(port)
-    spy = ["py-spy", "record", "-r", str(PROFILE_HZ), "-f", "raw", "--nonblocking", "-o", str(profile), "--"]
+    spy = [py_spy(), "record", "-r", str(PROFILE_HZ), "-f", "raw", "--nonblocking", "-o", str(profile), "--"]
     serve, log = start_serve(f"tcp/127.0.0.1:{port}", ROBOT, env, spy if profile is not None else None)
     key = f"objslam/{ROBOT}"
     try:
