@@ -15,6 +15,7 @@ import queue
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 
 from perception.frame import Frame
 from service.config import IngestSettings
@@ -24,14 +25,27 @@ from service.ingest import Ingested, IngestQueue
 class Intake:
     """The decoder's and the worker's side of the hand-over between them."""
 
-    def __init__(self, settings: IngestSettings, ingest: IngestQueue, stop: threading.Event):
+    def __init__(
+        self,
+        settings: IngestSettings,
+        ingest: IngestQueue,
+        stop: threading.Event,
+        completed: Callable[[], None] = lambda: None,
+    ):
         self.live, self.max_age_s = settings.live, settings.max_age_ms / 1000.0
         self.ingest, self.stop = ingest, stop
+        self.completed = completed  # called when frames were dropped (they are completed: ``ServiceNode.completed``)
         self.decoded: queue.Queue[tuple[Frame, float]] = queue.Queue(maxsize=1 if self.live else 2)
 
     def take(self, timeout: float) -> Ingested | None:
         """Decoder: the next message to decode (live: the newest; the older ones are dropped as stale)."""
-        return self.ingest.get_newest(timeout) if self.live else self.ingest.get(timeout)
+        if not self.live:
+            return self.ingest.get(timeout)
+        stale = self.ingest.stale
+        item = self.ingest.get_newest(timeout)
+        if self.ingest.stale != stale:
+            self.completed()
+        return item
 
     def hand_over(self, frame: Frame, received: float) -> None:
         """Decoder: give a decoded frame to the worker; in order it waits for room (a frame that finds the
@@ -41,6 +55,7 @@ class Intake:
                 try:
                     self.decoded.get_nowait()
                     self.ingest.count_stale(1)
+                    self.completed()
                 except queue.Empty:
                     pass
             try:
@@ -60,6 +75,7 @@ class Intake:
             return None
         if self.live and time.monotonic() - received > self.max_age_s and self.ingest.depth > 0:
             self.ingest.count_stale(1)
+            self.completed()
             return None
         return frame, received
 

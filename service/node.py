@@ -63,7 +63,7 @@ class ServiceNode:
         self._summary, self._summary_version = MapSummary(), 0
         self._stop = threading.Event()
         self._frame_done = threading.Condition()  # notified after each frame is processed, rejected or failed
-        self.intake = Intake(settings.ingest, self.queue, self._stop)  # decoder -> worker, in order or live
+        self.intake = Intake(settings.ingest, self.queue, self._stop, self._completed_one)  # in order or live
         self.mapping_lag = MappingLag()
         self.service_id = str(session.zid())
         self.saves = SaveRequests(settings, self.service_id, self.write_outputs)
