@@ -10,6 +10,7 @@ import logging
 import math
 from dataclasses import replace
 
+import cv2
 import numpy as np
 
 from graph.geometry import inverse, motion_magnitude, relative
@@ -96,14 +97,12 @@ class VisualOdometry:
     def track(self, frame: Frame) -> Step:
         """The frame's step; with ``deferral`` (live) it may carry a keyframe decided earlier (``Step.deferred``)."""
         gray, deferral = gray_image(frame), self.deferral
-        deferred = deferral.ready(self) if deferral is not None else None
-        step = self._track(frame, gray)
-        if deferral is not None and deferral.finished is not None:  # the flow failed: the job was waited for
-            deferred = deferral.finished
         if deferral is not None:
-            deferral.finished = None
+            deferral.ready(self)  # a finished keyframe becomes the one tracked against
+        step = self._track(frame, gray)  # (or, when the flow fails, waits for the pending one)
+        if deferral is not None:
+            step.deferred, deferral.finished = deferral.finished, None
             deferral.count(step)
-        step.deferred = deferred
         return step
 
     def _track(self, frame: Frame, gray: np.ndarray) -> Step:
@@ -196,7 +195,10 @@ class VisualOdometry:
         if prior is not None and self._kf_pose is not None:  # start the search where the motion prior says
             T_color = self.estimator.E @ prior @ self.estimator.E_inv  # keyframe colour camera -> frame's
             self.tracker.predict(inverse(T_color), self.estimator.K)
-        tracks = self.tracker.track(gray)
+        try:
+            tracks = self.tracker.track(gray)
+        except cv2.error:  # an image of another size than the keyframe's
+            return None
         try:
             rel = self.estimator.solve(tracks.points, tracks.pixels)
         except Rejected:

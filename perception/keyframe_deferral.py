@@ -62,7 +62,8 @@ class DeferredKeyframes:
         if self.job is None:
             assert vo._kf_pose is not None
             prior = vo._prediction(frame.timestamp, vo._kf_pose)
-            self.job = Job(frame, gray, self.submit(vo.keyframe_job, frame, gray, flowed, prior))
+            # after = -1: ``count`` counts the job's own frame too
+            self.job = Job(frame, gray, self.submit(vo.keyframe_job, frame, gray, flowed, prior), after=-1)
             self.submitted += 1
             return True
         return True
@@ -72,16 +73,16 @@ class DeferredKeyframes:
         if self.job is not None and step.posed:
             self.job.after += 1
 
-    def ready(self, vo: VisualOdometry) -> tuple[Frame, Step] | None:
-        """The finished job's keyframe, made the one tracked against; None when none finished."""
-        if self.job is None or not self.job.handle.done():
-            return None
-        return self._accept(vo, 0)
+    def ready(self, vo: VisualOdometry) -> None:
+        """A finished job's keyframe, made the one tracked against, into ``finished`` (kept there until the
+        front end hands it on, so a frame that fails after this does not lose it)."""
+        if self.finished is None and self.job is not None and self.job.handle.done():
+            self.finished = self._accept(vo, 0)
 
     def finish(self, vo: VisualOdometry, counted: bool) -> None:
         """Wait for the pending job and take its keyframe (into ``finished``); ``counted``: the frame being
         tracked was already counted in the front end's frames since its keyframe."""
-        if self.job is not None:
+        if self.job is not None and self.finished is None:
             self.finished = self._accept(vo, int(counted))
 
     def drop(self) -> None:

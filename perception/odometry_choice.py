@@ -97,7 +97,7 @@ class PerFrameOdometry:
         elif step.posed:
             self._anchor = None
         if step.deferred is not None:
-            self._kf_pose = step.deferred[1].pose
+            self.keyframe_taken(step.deferred[1].pose)
         if step.posed:
             self.last, self._last_pose = source, step.pose
             if step.keyframe:
@@ -105,6 +105,10 @@ class PerFrameOdometry:
             else:
                 self._since += 1
         return step
+
+    def keyframe_taken(self, pose: np.ndarray) -> None:
+        """A keyframe made beside the tracking (live) became the visual front end's: the chain's keyframe."""
+        self._kf_pose, self._since = pose, 0
 
     def _visual(self) -> VisualOdometry:
         if self.visual is None:

@@ -36,6 +36,7 @@ class Intake:
         self.ingest, self.stop = ingest, stop
         self.completed = completed  # called when frames were dropped (they are completed: ``ServiceNode.completed``)
         self.decoded: queue.Queue[tuple[Frame, float]] = queue.Queue(maxsize=1 if self.live else 2)
+        self._skipped = False  # the worker skipped the last frame as too old
 
     def take(self, timeout: float) -> Ingested | None:
         """Decoder: the next message to decode (live: the newest; the older ones are dropped as stale)."""
@@ -68,15 +69,19 @@ class Intake:
 
     def next(self, timeout: float) -> tuple[Frame, float] | None:
         """Worker: the next decoded frame and its arrival time; None when none came or (live) it was too old
-        while a newer one is queued (then counted as stale)."""
+        while a newer one is queued (then counted as stale; not two frames running, so a machine on which
+        decoding alone takes longer than ``max_age_ms`` still tracks every other frame)."""
         try:
             frame, received = self.decoded.get(timeout=timeout)
         except queue.Empty:
             return None
-        if self.live and time.monotonic() - received > self.max_age_s and self.ingest.depth > 0:
+        too_old = self.live and time.monotonic() - received > self.max_age_s
+        if too_old and self.ingest.depth > 0 and not self._skipped:  # never twice running: decoding takes time too
             self.ingest.count_stale(1)
             self.completed()
+            self._skipped = True
             return None
+        self._skipped = False
         return frame, received
 
     def discard(self) -> int:

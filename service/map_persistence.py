@@ -125,13 +125,14 @@ class Persistence:
         self.resumed_from = {"file": source, "keyframes": keyframes, "frames_processed": frames, "created": created}
         log.info("resumed from %s: %d keyframes, %d frames processed", source, keyframes, frames)
 
-    def due(self, keyframes: int, idle: bool = True) -> bool:
+    def due(self, keyframes: int, idle: bool = True, lag: int = MAPPING_LAG) -> bool:
         """True once ``every_keyframes`` keyframes were added since the newest checkpoint and the keyframe
         mapping is ``idle`` (taking the state waits for its running stages: a checkpoint waits a few frames for
-        them rather than the worker for it), or ``MAPPING_LAG`` more keyframes were added meanwhile; and no
+        them rather than the worker for it), or ``lag`` more keyframes were added meanwhile (``MAPPING_LAG``;
+        live, ``LIVE_MAX_PENDING``: tracking never waits for the mapping below that either); and no
         failed write is waiting out its backoff (a full or read-only disk is not retried after every frame)."""
         behind = keyframes - self._saved[0]
-        ready = behind >= self.every_keyframes and (idle or behind >= self.every_keyframes + MAPPING_LAG)
+        ready = behind >= self.every_keyframes and (idle or behind >= self.every_keyframes + lag)
         return ready and time.monotonic() >= self._retry_at
 
     def changed(self, keyframes: int, frames: int) -> bool:

@@ -14,30 +14,30 @@ import logging
 import sys
 import threading
 import time
-from collections.abc import Callable, Hashable
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import zenoh
 
-from graph.geometry import pose_to_tum
 from graph.pose_graph import SolverError
 from graph.trajectory import Trajectory
 from perception.frame import Frame
-from service.config import IngestSettings, Settings
+from service.config import Settings
 from service.events import MapEvents
 from service.ingest import Gate, IngestQueue, decode_counted
 from service.intake import Intake, MappingLag
 from service.labels import LabelVocabulary
 from service.map_persistence import Persistence, service_state
 from service.map_summary import MapSummary, summarize
+from service.node_queries import NodeQueries
 from service.outputs import run_summary, write_outputs
 from service.protocol import VERSION, FrameRejected, Reason
-from service.replies import Replies
 from service.save_requests import SaveRequests
 from service.scheduler import ThreadedRunner
 from service.stats import ServiceStats
 from slam.build import build_core
+from slam.core import LIVE_MAX_PENDING, MAPPING_LAG
 from slam.parts import core_parts
 from slam.runner import idle
 from slam.snapshot import restore_core
@@ -47,7 +47,7 @@ log = logging.getLogger(__name__)
 SWITCH_INTERVAL_S = 0.001
 
 
-class ServiceNode:
+class ServiceNode(NodeQueries):
     """One robot's mapping service on a zenoh session, under ``<key_prefix>/<robot>/``."""
 
     def __init__(self, settings: Settings, session: zenoh.Session):
@@ -216,6 +216,8 @@ class ServiceNode:
             self.saves.answer()
             taken = self.intake.next(timeout=0.1)
             if taken is None:
+                if self.core.live and self._catch_up(idle=True):  # no frame: map what is ready now
+                    self._publish_summary()
                 continue
             frame, received = taken
             try:
@@ -245,22 +247,35 @@ class ServiceNode:
             self.stats.count_error("solver")
             return
         self.stats.time("graph", t2 - t1)
-        self._publish_summary()
-        self.events.publish(self.summary)
         for stage, seconds in stage_times.items():
             self.stats.time(stage, seconds)
         self.stats.time("ingest_to_graph", t2 - received)
         self.stats.count_processed()
         self.mapping_lag.frame(frame.timestamp, received, added)
-        if self.core.live:  # keyframe mapping finished since: into the map now, after this frame's pose
-            with self._lock:
-                applied = self.core.apply_ready()
-            if applied:
-                self._publish_summary()
-        now = time.monotonic()
-        for lag in self.mapping_lag.applied(len(self.core.kf_odometry) - len(self.core.pending), now):
-            self.stats.time("mapping_lag", lag)
+        self._catch_up()
+        self._publish_summary()
+        self.events.publish(self.summary)
         self.snapshot()
+
+    def _catch_up(self, idle: bool = False) -> bool:
+        """Live: keyframe mapping finished since the frame's step goes into the map now, after its pose (a
+        failure is a mapping error, not the frame's); ``idle`` (no frame coming): a keyframe being made beside
+        the tracking is waited for and added too. Then the mapping lag of the keyframes mapped. True when the
+        map changed."""
+        timings, took = None, False
+        if self.core.live:
+            try:
+                with self._lock:
+                    took = idle and self.core.take_deferred()
+                    timings = self.core.apply_ready()
+            except Exception:
+                log.exception("applying a keyframe's mapping failed")
+                self.core.mapping_errors, took = self.core.mapping_errors + 1, True
+            for stage, seconds in (timings or {}).items():
+                self.stats.time(stage, seconds)
+        for lag in self.mapping_lag.applied(len(self.core.kf_odometry) - len(self.core.pending), time.monotonic()):
+            self.stats.time("mapping_lag", lag)
+        return timings is not None or took
 
     # ------------------------------------------------------------ persistence
 
@@ -274,7 +289,8 @@ class ServiceNode:
             return False
         keyframes, frames, completed = self.core.graph.num_keyframes, self.stats.processed, self.completed
         changed = p.changed(keyframes, frames) or completed != self._saved_completed  # rejected, dropped frames too
-        if not (p.due(keyframes, idle(self.core.pending)) or (final and changed)):
+        lag = LIVE_MAX_PENDING if self.core.live else MAPPING_LAG  # live: never wait for mapping below that
+        if not (p.due(keyframes, idle(self.core.pending), lag) or (final and changed)):
             return False
         t0 = time.perf_counter()
         with self._lock:
@@ -297,6 +313,7 @@ class ServiceNode:
             "pipeline": parts.small,
             "stats": stats,
             "frames_dropped": self.queue.dropped,
+            "frames_stale": self.queue.stale,
             "settings": self.settings.map_sections(),
         }
         return small, parts.logs
@@ -313,7 +330,7 @@ class ServiceNode:
         self.core.close()
         self.core = core
         self.stats.restore_counters(state["stats"])
-        self.queue.dropped = state["frames_dropped"]
+        self.queue.dropped, self.queue.stale = state["frames_dropped"], state.get("frames_stale", 0)
         self._saved_completed = self.completed
         accepted = {r.factor for r in core.loop_records() if r.accepted and r.factor is not None}
         self.events.resume(core.object_map_version, accepted)
@@ -341,42 +358,6 @@ class ServiceNode:
             out, traj, odom, summary, None, self.objects_reply()["objects"], self.loops_reply()["loops"], cloud
         )
 
-    def _replies(self, limits: IngestSettings) -> Replies:
-        """The queryables' replies, each recomputed once per change of what it shows (``service.replies``)."""
-        entries: dict[str, tuple[Callable[[], dict[str, Any]], Callable[[], Hashable]]] = {
-            "status": (self.status, lambda: (self._summary_version, self.stats.received, self.completed)),
-            "trajectory": (self.trajectory_reply, lambda: self._summary_version),
-            "objects": (self.objects_reply, lambda: self.summary.objects_key),
-            "loops": (self.loops_reply, lambda: self.summary.loops_key),
-        }
-        return Replies(self.prefix, self.service_id, entries, limits.max_queries_per_s)
-
-    def status(self) -> dict[str, Any]:
-        """The ``status`` reply (schema in docs/protocol.md), without waiting for the frame being processed."""
-        snap = self.stats.snapshot()
-        snap.update(self.summary.counts)
-        snap.update(
-            robot=self.settings.robot,
-            protocol_version=VERSION,
-            frames_dropped=self.queue.dropped,
-            frames_dropped_by_reason=self.intake.dropped_by_reason(),
-            queue_depth=self.queue.depth,
-            queue_capacity=self.queue.capacity,
-            uptime_s=round(time.time() - self._started, 3),
-            persistence=self.persistence.status(self.core) if self.persistence is not None else None,
-            service_id=self.service_id,
-            labels=self.labels.counters(),
-            refused={"queries_busy": self.replies.budget.refused, "saves_busy": self.saves.busy},
-        )
-        snap.update({name: section() for name, section in self.status_sections.items()})  # e.g. ``ros2``
-        return snap
-
-    def trajectory_reply(self) -> dict[str, Any]:
-        """Optimised poses of every processed frame: ``{"frame": "world", "poses": [[t, tx..qw], ...]}``."""
-        traj, _ = self.trajectories()
-        rows = [[float(t), *map(float, pose_to_tum(T))] for t, T in zip(traj.timestamps, traj.poses, strict=True)]
-        return {"robot": self.settings.robot, "format": "t tx ty tz qx qy qz qw", "poses": rows}
-
     def finish(self) -> None:
         """End of a replayed sequence: final object clustering."""
         with self._lock:
@@ -387,11 +368,3 @@ class ServiceNode:
         """(optimised poses of the frames tied to the map, odometry of every frame), taken consistently."""
         with self._lock:
             return self.core.trajectory(tied_only=True), self.core.odometry_trajectory()
-
-    def objects_reply(self) -> dict[str, Any]:
-        """Objects as ellipsoids (SPEC section 4 fields), as of the last processed frame."""
-        return {"robot": self.settings.robot, "objects": self.summary.objects}
-
-    def loops_reply(self) -> dict[str, Any]:
-        """Every loop-closure candidate with its verdict (SPEC section 4 fields), as of the last processed frame."""
-        return {"robot": self.settings.robot, "loops": self.summary.loops}

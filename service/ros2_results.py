@@ -48,7 +48,6 @@ class Ros2Results:
         self._seen: dict[str, Any] = {}  # the version of each message last published
         self._sent_at: dict[str, float] = {}  # and when (monotonic)
         self._kf_times: list[float] = []  # the keyframes' times, from the records read so far
-        self._records_read = 0
 
     def key(self, name: str) -> str:
         typename = {"path": messages.PATH, "pose": messages.POSE_STAMPED, "objects": messages.MARKER_ARRAY}[name]
@@ -114,8 +113,7 @@ class Ros2Results:
             kf_poses = core.graph.poses()
             last = core.records[-1]
             pose = kf_poses[last.keyframe] @ last.from_keyframe
-            self._kf_times += [r.timestamp for r in core.records[self._records_read :] if r.is_keyframe]
-            self._records_read = len(core.records)
+            self._kf_times += core.kf_stamps[len(self._kf_times) :]
         stamp = last.timestamp
         if "pose" in changed:
             self._put("pose", messages.encode_pose_stamped(stamp, frame_id, pose), stamp)

@@ -79,12 +79,17 @@ class CoreTracks:
         self.kf_poses = np.zeros((0, 4, 4))
         self.tied = np.zeros(0, bool)
         self._new: list[Any] = []
+        self._new_keyframes: list[Keyframe] = []
+        self._keyframes_seen = 0
         self._columns: dict[str, list[np.ndarray]] = {k: [] for k in ("t", "kf", "rel", "odom", "posed")}
 
     def take(self, core: SlamCore) -> bool:
         """Copy what changed in ``core`` (its lock held); True when the graph moved since the last copy."""
         self._new = core.records[self.seen :]
         self.seen += len(self._new)
+        stamps = core.kf_stamps  # live, a keyframe made beside the tracking has no keyframe record of its own
+        self._new_keyframes = [Keyframe(k, float(stamps[k])) for k in range(self._keyframes_seen, len(stamps))]
+        self._keyframes_seen = len(stamps)
         graph = core.graph
         key = (graph.updates, graph.num_keyframes, graph.start, graph.global_solves)
         if key == self.graph_key:
@@ -97,7 +102,7 @@ class CoreTracks:
 
     def new_keyframes(self) -> list[Keyframe]:
         """The keyframes among the frames copied by the last ``take``."""
-        return [Keyframe(r.keyframe, float(r.timestamp)) for r in self._new if r.is_keyframe]
+        return self._new_keyframes
 
     def trajectories(self) -> tuple[Trajectory, Trajectory]:
         """(optimised poses of the frames tied to the map, odometry of every posed frame), as ``node.trajectories``."""

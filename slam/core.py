@@ -105,6 +105,7 @@ class SlamCore(MapViews):
         self.tracking: Tracking | None = None
         self.records: list[FrameRecord] = []
         self.kf_odometry: list[np.ndarray] = []
+        self.kf_stamps: list[float] = []  # per keyframe: its frame's timestamp (live, a keyframe's record may not say)
         self.kf_points: ColdLog[np.ndarray] = ColdLog()  # sparse depth samples per keyframe, camera frame, float32
         self.pending: deque[dict[str, Handle]] = deque()  # per keyframe, oldest first: its unapplied stages
         self.objects_view: list = []  # the objects as of the last applied mapping (read by object_list)
@@ -223,9 +224,10 @@ class SlamCore(MapViews):
             if not self.segments.tied(kf):
                 relocalization.try_join(self.graph, self.segments, self.loops, kf, frame, step)
         self.kf_odometry.append(step.pose)
+        self.kf_stamps.append(frame.timestamp)
         self.kf_points.append(map_points(frame))
         if self.live:
-            self.apply_ready()
+            self.timings.update(self.apply_ready() or {})
         while len(self.pending) >= (LIVE_MAX_PENDING if self.live else MAPPING_LAG):
             self._apply_mapping()
         self._submit_mapping(kf, frame, step)
@@ -286,14 +288,32 @@ class SlamCore(MapViews):
             self._detector = self.detector_factory()
         return self._detector
 
-    def apply_ready(self) -> bool:
+    def apply_ready(self) -> dict[str, float] | None:
         """Live: apply the mapping of the oldest keyframes whose stages have all finished (none waited for);
-        True when one was applied."""
+        the seconds each stage took, or None when none was applied."""
+        step_timings, self.timings = self.timings, {}
         applied = False
         while self.pending and idle([self.pending[0]]):
             self._apply_mapping()
             applied = True
-        return applied
+        applied_timings, self.timings = self.timings, step_timings
+        return applied_timings if applied else None
+
+    def take_deferred(self) -> bool:
+        """Live, no frame coming: wait for the keyframe being made beside the tracking and add it (it would
+        otherwise wait for the next frame); True when one was added."""
+        frontend = self.tracking.frontend if self.tracking is not None else None
+        deferral = frontend.defer if frontend is not None else None
+        if frontend is None or deferral is None or not deferral.pending or frontend.visual is None:
+            return False
+        deferral.finish(frontend.visual, counted=False)
+        taken, deferral.finished = deferral.finished, None
+        if taken is None:
+            return False
+        frame, step = taken
+        self._add_keyframe(frame, step)
+        frontend.keyframe_taken(step.pose)
+        return True
 
     def _apply_mapping(self) -> None:
         """Take the oldest unapplied keyframe's mapping and put it into the map: its detections and landmark
@@ -354,6 +374,7 @@ class SlamCore(MapViews):
 
     def finish(self) -> None:
         """End of a sequence: the whole graph solved, open tracks emitted, objects re-clustered once more."""
+        self.take_deferred()
         self.flush()
         self.graph.flush()
         if self.objects is not None and self.records:

@@ -73,6 +73,7 @@ def core_parts(core: SlamCore) -> CoreParts:
     logs: dict[str, Any] = {
         "records": core.records,
         "kf_odometry": core.kf_odometry,
+        "kf_stamps": core.kf_stamps,
         "kf_points": core.kf_points,
         "keyframe_detections": core.keyframe_detections,
         "object_poses": core.object_poses,
@@ -118,6 +119,7 @@ def assemble(parts: CoreParts, materialize: bool = True) -> dict[str, Any]:
             "posed": np.array([x.posed for x in r], bool),
         },
         "kf_odometry": _poses(logs["kf_odometry"]),
+        "kf_stamps": np.array(list(logs.get("kf_stamps", [])), float),  # stored since 2026-12-03
         "kf_points": list(logs["kf_points"]) if materialize else ColdLog.of(logs["kf_points"]),
         "segments": {**small["segments"], "keyframe_segment": list(logs["segments.keyframe_segment"])},
         "keyframe_detections": dict(logs["keyframe_detections"]),

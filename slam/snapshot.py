@@ -73,6 +73,12 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
     ]
     core.clock.restore(state.get("clock", {}), core.records[-1].timestamp if core.records else None)
     core.kf_odometry = list(state["kf_odometry"])
+    stamps = state.get("kf_stamps")  # saved before: every keyframe's record was its own frame's
+    core.kf_stamps = (
+        [float(t) for t in stamps]
+        if stamps is not None and len(stamps) == len(core.kf_odometry)
+        else [r.timestamp for r in core.records if r.is_keyframe]
+    )
     core.kf_points = ColdLog.of(state.get("kf_points", []))
     core.tracking_lost = state["tracking_lost"]
     if "segments" in state:

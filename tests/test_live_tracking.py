@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from concurrent.futures import ThreadPoolExecutor
 
 import cv2
@@ -19,6 +20,7 @@ from service.config import load_settings
 from service.scheduler import ThreadedRunner
 from slam.build import build_core
 from slam.core import LIVE_MAX_PENDING
+from slam.runner import InlineRunner
 from sources import ground_truth_of, open_dataset
 from tests.conftest import REDKITCHEN, requires_redkitchen
 
@@ -136,5 +138,28 @@ def test_a_live_core_never_waits_for_a_detector_that_is_behind_and_skips_its_key
         assert sum(len(d) for d in core.keyframe_detections.values()) > 0  # the keyframes detected on have objects
         assert len(core.keyframe_detections) == keyframes  # every keyframe mapped (some without detections)
         assert len(core.trajectory()) == len(frames) and core.tracking_lost == 0
+    finally:
+        core.close()
+
+
+def test_a_live_core_knows_the_frame_of_every_keyframe_made_beside_the_tracking(room):
+    _, frames, truth = room
+    core = build_core(load_settings(None, {"detector": {"enabled": False}}), InlineRunner())
+    core.live = True
+    try:
+        for f in frames:
+            core.step(dataclasses.replace(f, odometry=None, detections=None))
+        assert core.frontend is not None and core.frontend.defer is not None and core.frontend.defer.submitted > 3
+        core.finish()  # the keyframe still being made is added, not lost
+        assert not core.frontend.defer.pending
+        stamps = np.array(core.kf_stamps)
+        assert len(stamps) == len(core.kf_odometry) == core.graph.num_keyframes and np.all(np.diff(stamps) > 0)
+        # a keyframe made beside the tracking has no keyframe record: its stamp names its frame all the same
+        recorded = {r.timestamp for r in core.records if r.is_keyframe}
+        assert len(recorded) < len(stamps)
+        index = {f.timestamp: i for i, f in enumerate(frames)}
+        rel = [np.linalg.inv(truth[0]) @ truth[index[t]] for t in stamps]
+        errors = [np.linalg.norm(p[:3, 3] - r[:3, 3]) for p, r in zip(core.graph.poses(), rel, strict=True)]
+        assert max(errors) < 0.05  # each keyframe's pose is its own frame's (a neighbour's is 2 cm away)
     finally:
         core.close()
