@@ -22,6 +22,7 @@ def bench_live(
     profile: Annotated[
         bool, typer.Option("--profile", help="record serve with py-spy: its top costs per frame")
     ] = False,
+    repeat: Annotated[int, typer.Option("--repeat", help="runs of the live configuration", min=1)] = 3,
     write: WriteOpt = None,
 ) -> None:
     """Datasets replayed at camera rate into `serve` (detector on, visual tracking), before issue 28's changes,
@@ -29,4 +30,4 @@ def bench_live(
     offline run."""
     from bench.live import run_live_bench
 
-    run_live_bench(console, list(dataset or LIVE_DATASETS), frames, rate, profile, write)
+    run_live_bench(console, list(dataset or LIVE_DATASETS), frames, rate, profile, write, repeat)
