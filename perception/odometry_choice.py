@@ -106,6 +106,18 @@ class PerFrameOdometry:
                 self._since += 1
         return step
 
+    def take_deferred(self) -> tuple[Frame, Step] | None:
+        """Wait for the keyframe the visual front end is making beside the tracking, and take it (live, when no
+        frame comes to hand it on); None when none is being made or it made none."""
+        deferral, visual = self.defer, self.visual
+        if deferral is None or visual is None or not deferral.pending:
+            return None
+        deferral.finish(visual, counted=False)
+        taken, deferral.finished = deferral.finished, None
+        if taken is not None:
+            self.keyframe_taken(taken[1].pose)
+        return taken
+
     def keyframe_taken(self, pose: np.ndarray) -> None:
         """A keyframe made beside the tracking (live) became the visual front end's: the chain's keyframe."""
         self._kf_pose, self._since = pose, 0

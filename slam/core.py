@@ -302,18 +302,10 @@ class SlamCore(MapViews):
     def take_deferred(self) -> bool:
         """Live, no frame coming: wait for the keyframe being made beside the tracking and add it (it would
         otherwise wait for the next frame); True when one was added."""
-        frontend = self.tracking.frontend if self.tracking is not None else None
-        deferral = frontend.defer if frontend is not None else None
-        if frontend is None or deferral is None or not deferral.pending or frontend.visual is None:
-            return False
-        deferral.finish(frontend.visual, counted=False)
-        taken, deferral.finished = deferral.finished, None
-        if taken is None:
-            return False
-        frame, step = taken
-        self._add_keyframe(frame, step)
-        frontend.keyframe_taken(step.pose)
-        return True
+        taken = self.tracking.frontend.take_deferred() if self.tracking is not None else None
+        if taken is not None:
+            self._add_keyframe(*taken)
+        return taken is not None
 
     def _apply_mapping(self) -> None:
         """Take the oldest unapplied keyframe's mapping and put it into the map: its detections and landmark

@@ -73,12 +73,7 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
     ]
     core.clock.restore(state.get("clock", {}), core.records[-1].timestamp if core.records else None)
     core.kf_odometry = list(state["kf_odometry"])
-    stamps = state.get("kf_stamps")  # saved before: every keyframe's record was its own frame's
-    core.kf_stamps = (
-        [float(t) for t in stamps]
-        if stamps is not None and len(stamps) == len(core.kf_odometry)
-        else [r.timestamp for r in core.records if r.is_keyframe]
-    )
+    core.kf_stamps = _keyframe_stamps(state, core.records)
     core.kf_points = ColdLog.of(state.get("kf_points", []))
     core.tracking_lost = state["tracking_lost"]
     if "segments" in state:
@@ -106,3 +101,11 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
             jobs["loops"] = Done(_loop_results(results["loops"]))
         core.pending.append(jobs)
     return core
+
+
+def _keyframe_stamps(state: dict[str, Any], records: list[FrameRecord]) -> list[float]:
+    """The keyframes' timestamps; saved before they were kept, every keyframe's record was its own frame's."""
+    stamps = state.get("kf_stamps")
+    if stamps is not None and len(stamps) == len(state["kf_odometry"]):
+        return [float(t) for t in stamps]
+    return [r.timestamp for r in records if r.is_keyframe]
