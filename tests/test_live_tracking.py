@@ -181,8 +181,8 @@ def test_a_live_core_never_waits_for_a_detector_that_is_behind_and_skips_its_key
             most_pending = max(most_pending, len(core.pending))
         keyframes = len(core.kf_odometry)
         core.flush()
-        assert most_pending <= LIVE_MAX_PENDING and core.detections_skipped > 0
-        assert sum(len(d) for d in core.keyframe_detections.values()) > 0  # the keyframes detected on have objects
+        assert most_pending <= LIVE_MAX_PENDING and 0 < core.detections_skipped < keyframes
+        assert core.detector_loaded  # the keyframes not skipped went to the ONNX detector
         assert len(core.keyframe_detections) == keyframes  # every keyframe mapped (some without detections)
         assert len(core.trajectory()) == len(frames) and core.tracking_lost == 0
     finally:
