@@ -142,7 +142,10 @@ class VisualOdometry:
         """The flow's pose stands for ``frame``: no keyframe is due, or (live) its keyframe is made elsewhere."""
         if not self._keyframe_due(flowed):
             return True
-        return self.deferral is not None and self.deferral.take(self, frame, gray, flowed)
+        if self.deferral is None:
+            return False
+        self.deferral.take(self, frame, gray, flowed)
+        return True
 
     def keyframe_step(
         self, frame: Frame, features: Features, depth: np.ndarray, primary: Hypothesis | None, prior: np.ndarray

@@ -57,16 +57,14 @@ class DeferredKeyframes:
     def pending(self) -> bool:
         return self.job is not None
 
-    def take(self, vo: VisualOdometry, frame: Frame, gray: np.ndarray, flowed: Hypothesis) -> bool:
-        """``frame`` needs a keyframe: submit its job unless one is pending. True: the frame is posed by flow."""
+    def take(self, vo: VisualOdometry, frame: Frame, gray: np.ndarray, flowed: Hypothesis) -> None:
+        """``frame`` needs a keyframe: submit its job unless one is pending (the frame is posed by flow)."""
         if self.job is None:
             assert vo._kf_pose is not None
             prior = vo._prediction(frame.timestamp, vo._kf_pose)
             # after = -1: ``count`` counts the job's own frame too
             self.job = Job(frame, gray, self.submit(vo.keyframe_job, frame, gray, flowed, prior), after=-1)
             self.submitted += 1
-            return True
-        return True
 
     def count(self, step: Step) -> None:
         """A frame was tracked while the job is pending."""

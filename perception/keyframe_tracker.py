@@ -91,10 +91,6 @@ class KeyframeTracker:
         ok = front & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
         self._last[idx[ok]] = uv[ok].astype(np.float32)
 
-    def clear(self) -> None:
-        """No keyframe to track from (after a loss, until the next keyframe)."""
-        self._gray = None
-
     def track(self, gray: np.ndarray) -> Tracks:
         """The keyframe's points found in ``gray`` and checked back (empty when nothing could be tracked)."""
         if self._gray is None or not self._alive.any():
