@@ -113,12 +113,13 @@ def serve(settings: Settings, stop: threading.Event | None = None) -> int:
             node.stop()
             session.close()
             raise
-    node.start()
     bridge = None
-    if settings.ros2.enabled:  # ROS 2 topics on rmw_zenoh keys (rosbags imported only then)
-        from service.ros2_bridge import Ros2Bridge
+    if settings.ros2.enabled:  # ROS 2 topics on rmw_zenoh keys (rosbags imported only then), in status from its
+        from service.ros2_bridge import Ros2Bridge  # first answer: built before the node answers
 
         bridge = Ros2Bridge(node)
+    node.start()
+    if bridge is not None:
         bridge.start(session)
     log.info("objslam serve: robot %s on %s, listening %s", settings.robot, node.prefix, settings.zenoh.listen)
     try:
