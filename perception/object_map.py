@@ -31,8 +31,27 @@ from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
 from perception.tracks import Tracker
 
-MAX_FLOOR_VIEWS = 2000
-"""Keyframes whose floor planes are kept (the newest): the floor needs many views, not all of them."""
+MAX_FLOOR_VIEWS = 500
+"""Keyframes whose floor planes are kept (the newest): the floor needs many views, not all of them (and the
+floor under the robot is the one seen lately: a long run may change levels)."""
+
+
+def _floor_columns(views: dict[int, tuple[np.ndarray, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Floor views as three arrays (keyframes, planes, poses): a checkpoint copies them, not pickles each."""
+    return {
+        "keyframes": np.fromiter(views, np.int64, len(views)),
+        "planes": np.array([p for p, _ in views.values()], float).reshape(-1, 4),
+        "poses": np.array([T for _, T in views.values()], float).reshape(-1, 4, 4),
+    }
+
+
+def _floor_rows(saved: dict) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """``_floor_columns`` back as rows (or a state of 2026-12-03, a dict of rows, as it is); the newest
+    ``MAX_FLOOR_VIEWS``."""
+    if "planes" in saved:
+        rows = zip(saved["keyframes"], saved["planes"], saved["poses"], strict=True)
+        saved = {int(k): (np.array(p, float), np.array(T, float)) for k, p, T in rows}
+    return dict(list(saved.items())[-MAX_FLOOR_VIEWS:])
 
 
 def _has(poses: Mapping[int, np.ndarray] | np.ndarray, k: int) -> bool:
@@ -244,7 +263,7 @@ class ObjectMapper:
             "clusterer": clusterer,
             "prev": prev,
             "associations": self.associations,
-            "floor_views": dict(self._floor_views),
+            "floor_views": _floor_columns(self._floor_views),
         }
         logs = {
             "observations.keyframe": self._obs_keyframe,
@@ -264,7 +283,7 @@ class ObjectMapper:
         cut = store.get("cut", np.zeros((len(self._obs_local), 2), bool))  # none before 2026-12-03: taken as uncut
         self._obs_cut = [(bool(t), bool(b)) for t, b in cut]
         self.clusterer.keyframe_of = self._obs_keyframe
-        self._floor_views = dict(state.get("floor_views", {}))  # none in snapshots of earlier versions
+        self._floor_views = _floor_rows(state.get("floor_views", {}))  # none in snapshots of earlier versions
         self._floor_stale = True
 
     def finish(self) -> list[ObjectEllipsoid]:

@@ -13,14 +13,17 @@ from __future__ import annotations
 
 import logging
 import sqlite3
+import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
 from service.config import ConfigError
 from service.map_store import SCHEMA_VERSION, MapStore, StoreError
 from service.persistence import SnapshotStore
+from service.store_rows import Staged
 from slam.core import MAPPING_LAG, SlamCore
 from slam.parts import COLD, CoreParts, assemble
 
@@ -51,6 +54,9 @@ class Persistence:
         self._saved = (0, 0)  # (keyframes, frames processed) of the newest checkpoint
         self._backoff_s = self._retry_at = 0.0  # after a failed write: the wait before the next try, and its end
         self.last_error: str | None = None
+        self._writer = ThreadPoolExecutor(1, thread_name_prefix="map-store")
+        self._inflight: Future[dict[str, Any] | str] | None = None  # the checkpoint being written
+        self._reap_lock = threading.Lock()
 
     def _open(self, keep: int) -> MapStore:
         path = self.directory / STORE_NAME
@@ -131,44 +137,91 @@ class Persistence:
         them rather than the worker for it), or ``lag`` more keyframes were added meanwhile (``MAPPING_LAG``;
         live, ``LIVE_MAX_PENDING``: tracking never waits for the mapping below that either); and no
         failed write is waiting out its backoff (a full or read-only disk is not retried after every frame)."""
+        self._reap()
+        if self.writing:  # one checkpoint at a time: the next one takes the rows new since this one
+            return False
         behind = keyframes - self._saved[0]
         ready = behind >= self.every_keyframes and (idle or behind >= self.every_keyframes + lag)
         return ready and time.monotonic() >= self._retry_at
 
     def changed(self, keyframes: int, frames: int) -> bool:
-        """True when there is work that the newest checkpoint does not hold."""
+        """True when there is work that the newest checkpoint does not hold (one being written counts once
+        committed)."""
+        self.settle()
         return (keyframes, frames) != self._saved
 
     def save(
-        self, small: dict[str, Any], logs: dict[str, Any], keyframes: int, frames: int, capture_s: float = 0.0
+        self,
+        small: dict[str, Any],
+        logs: dict[str, Any],
+        keyframes: int,
+        frames: int,
+        capture_s: float = 0.0,
+        wait: bool = False,
     ) -> bool:
-        """Checkpoint ``small`` and the new rows of ``logs`` (live: call before they change); a failed write is
-        logged and counted (the service keeps mapping, the rows are written with the next checkpoint)."""
-        t0, before = time.perf_counter(), self.store.bytes_written
+        """Checkpoint ``small`` and the new rows of ``logs`` (live: call before they change). The rows are encoded
+        here; checksums, SQLite and the commit run on the writer thread, so the caller waits only for the
+        encoding. A checkpoint still being written is waited for first. ``wait``: also for this one, and its
+        outcome returned. A failed write is logged and counted (the service keeps mapping, the rows are written
+        with the next checkpoint)."""
+        self.settle()
+        t0 = time.perf_counter()
+        staged = self.store.stage(small, logs, keyframes, frames)
+        encode_s = time.perf_counter() - t0
+        self._inflight = self._writer.submit(self._write, staged, capture_s, encode_s)
+        return self.settle() if wait else True
+
+    def _write(self, staged: Staged, capture_s: float, encode_s: float) -> dict[str, Any] | str:
+        """On the writer thread: the checkpoint's record, or why it failed."""
+        t0 = time.perf_counter()
         try:
-            checkpoint = self.store.checkpoint(small, logs, keyframes, frames)
+            checkpoint = self.store.write(staged)
         except (OSError, sqlite3.Error) as exc:
-            self.failed += 1
-            self._backoff_s = min(MAX_BACKOFF_S, self._backoff_s * 2 if self._backoff_s else FIRST_BACKOFF_S)
-            self._retry_at = time.monotonic() + self._backoff_s
-            self.last_error = str(exc)
-            log.error("could not checkpoint %s: %s; next try in %.0f s", self.store.path, exc, self._backoff_s)
-            return False
-        self._backoff_s, self._retry_at, self.last_error = 0.0, 0.0, None
-        self.written += 1
-        self._saved = (keyframes, frames)
-        self.last = {
+            return str(exc)
+        return {
             "file": f"{STORE_NAME}#checkpoint-{checkpoint}",
-            "keyframes": keyframes,
-            "frames_processed": frames,
-            "bytes": self.store.bytes_written - before,
+            "keyframes": staged.keyframes,
+            "frames_processed": staged.frames,
+            "bytes": staged.nbytes,
             "capture_ms": round(capture_s * 1e3, 3),
+            "encode_ms": round(encode_s * 1e3, 3),
             "write_ms": round((time.perf_counter() - t0) * 1e3, 3),
         }
-        return True
+
+    @property
+    def writing(self) -> bool:
+        """A checkpoint is being written (on the writer thread)."""
+        return self._inflight is not None and not self._inflight.done()
+
+    def settle(self) -> bool:
+        """Wait for the checkpoint being written, if any, and take its outcome: True when it was committed (or
+        there was none)."""
+        with self._reap_lock:
+            future, self._inflight = self._inflight, None
+            if future is None:
+                return True
+            outcome = future.result()
+            if isinstance(outcome, str):
+                self.failed += 1
+                self._backoff_s = min(MAX_BACKOFF_S, self._backoff_s * 2 if self._backoff_s else FIRST_BACKOFF_S)
+                self._retry_at = time.monotonic() + self._backoff_s
+                self.last_error = outcome
+                log.error("could not checkpoint %s: %s; next try in %.0f s", self.store.path, outcome, self._backoff_s)
+                return False
+            self._backoff_s, self._retry_at, self.last_error = 0.0, 0.0, None
+            self.written += 1
+            self._saved = (outcome["keyframes"], outcome["frames_processed"])
+            self.last = outcome
+            return True
+
+    def _reap(self) -> None:
+        """Take the outcome of a checkpoint written meanwhile (never waits)."""
+        if self._inflight is not None and self._inflight.done():
+            self.settle()
 
     def status(self, core: SlamCore | None = None) -> dict[str, Any]:
         """The ``persistence`` object of the status reply (docs/protocol.md), with ``core``'s session."""
+        self._reap()
         return {
             "state_dir": str(self.directory),
             "every_keyframes": self.every_keyframes,
@@ -202,6 +255,8 @@ class Persistence:
         }
 
     def close(self) -> None:
+        self.settle()
+        self._writer.shutdown()
         self.store.close()
 
 

@@ -20,18 +20,33 @@ Blobs are ``service.persistence.encode`` payloads, read with its plain-data unpi
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import sqlite3
 import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 from loops.archive import ColdLog
-from service.store_rows import StoreError, blob, join, kind_of, owner, tail, unblob
+from service.persistence import encode
+from service.store_rows import (
+    CHUNK,
+    COLD_ROW,
+    DELETE_CHUNKS,
+    Loaded,
+    LogState,
+    Staged,
+    StoreError,
+    join,
+    kind_of,
+    owner,
+    tail,
+    unblob,
+)
 
 log = logging.getLogger(__name__)
 
@@ -55,32 +70,6 @@ CREATE TABLE IF NOT EXISTS cold (
 MIGRATIONS: dict[int, Callable[[sqlite3.Connection], None]] = {}
 """Schema version -> the step that brings a store of that version to the next (none yet: version 1 is the
 first; a store without ``meta.schema_version`` is version 0, an empty file)."""
-
-
-@dataclass
-class LogState:
-    """What the store has of one log: its generation, rows written, kind, level-tagged chunks (first, count,
-    level) of the current generation, and the container written from (held, so that no new container can
-    take its place in memory and pass for it)."""
-
-    generation: int
-    written: int
-    kind: str
-    chunks: list[tuple[int, int, int]] | None = field(default_factory=list)  # None: go on in a new generation
-    owner: Any = None
-
-
-@dataclass(frozen=True)
-class Loaded:
-    """A checkpoint read back: its id, session, creation time, counts, small part and logs (cold ones lazy)."""
-
-    checkpoint: int
-    session: int
-    created: float
-    keyframes: int
-    frames: int
-    small: dict[str, Any]
-    logs: dict[str, Any]
 
 
 class MapStore:
@@ -163,31 +152,64 @@ class MapStore:
         """Write the rows of ``logs`` new since the last checkpoint and ``small``, in one transaction; its id.
 
         ``logs`` are the live containers (``slam.parts``): only their new rows are encoded, so the work is the
-        new rows', not the map's. Raises OSError / sqlite3.Error when the disk refuses (nothing is written)."""
-        t0 = time.perf_counter()
+        new rows', not the map's. Raises OSError / sqlite3.Error when the disk refuses (nothing is written).
+        ``stage`` and ``write`` in one call."""
+        return self.write(self.stage(small, logs, keyframes, frames))
+
+    def stage(self, small: dict[str, Any], logs: dict[str, Any], keyframes: int, frames: int) -> Staged:
+        """A checkpoint encoded: the new rows of the live ``logs`` and ``small`` as bytes, to be written by
+        ``write`` (on any thread: nothing it holds is live). Call it where the logs do not change meanwhile;
+        stage the next one only after the last one's ``write`` returned or raised."""
         before = {n: replace(s, chunks=None if s.chunks is None else list(s.chunks)) for n, s in self.logs.items()}
+        staged = Staged(keyframes, frames, before)
+        try:
+            lengths = {name: self._stage_log(staged, name, rows) for name, rows in logs.items()}
+            staged.lengths = json.dumps(lengths)
+            staged.small = b"".join(encode(small))
+        except BaseException:
+            self.logs = before
+            raise
+        for name in self.cold & logs.keys():  # once committed, the store holds them and RAM need not
+            rows = logs[name]
+            if isinstance(rows, ColdLog):
+                staged.spills.append((rows, lengths[name][1], self.loader(name, self.logs[name].generation)))
+        return staged
+
+    def write(self, staged: Staged) -> int:
+        """Write a staged checkpoint in one transaction (checksums, rows, the checkpoint row, pruning); its id.
+        On failure the writer's books are as before ``stage``: the next checkpoint writes these rows again."""
+        t0 = time.perf_counter()
         try:
             with self.transaction():
-                lengths = {name: self._write_log(name, rows) for name, rows in logs.items()}
-                data, sha = blob(small)
+                for sql, params in staged.ops:
+                    blob_ = params[-1]
+                    if isinstance(blob_, bytes):
+                        params = (*params, hashlib.sha256(blob_).digest())
+                    self.db.execute(sql, params)
                 cur = self.db.execute(
                     "INSERT INTO checkpoints (session, created, keyframes, frames, logs, small, sha) "
                     "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                    (self.session, time.time(), keyframes, frames, json.dumps(lengths), data, sha),
+                    (
+                        self.session,
+                        time.time(),
+                        staged.keyframes,
+                        staged.frames,
+                        staged.lengths,
+                        staged.small,
+                        hashlib.sha256(staged.small).digest(),
+                    ),
                 )
-                self.bytes_written += len(data)
                 self._prune()
         except BaseException:
-            self.logs = before  # the rolled-back rows are written again next time
+            self.logs = staged.before  # the rolled-back rows are written again next time
             raise
-        for name in self.cold & logs.keys():  # committed: the store holds them, RAM need not
-            rows = logs[name]
-            if isinstance(rows, ColdLog):
-                rows.spill(len(rows), self.loader(name, self.logs[name].generation))
-        log.debug("checkpoint: %d keyframes in %.1f ms", keyframes, (time.perf_counter() - t0) * 1e3)
+        self.bytes_written += staged.nbytes
+        for rows, n, loader in staged.spills:
+            rows.spill(n, loader)
+        log.debug("checkpoint: %d keyframes written in %.1f ms", staged.keyframes, (time.perf_counter() - t0) * 1e3)
         return int(cur.lastrowid or 0)
 
-    def _write_log(self, name: str, rows: Any) -> tuple[int, int, str]:
+    def _stage_log(self, staged: Staged, name: str, rows: Any) -> tuple[int, int, str]:
         state = self.logs.get(name)
         n, kind = len(rows), kind_of(rows)
         held = owner(rows)
@@ -200,10 +222,11 @@ class MapStore:
         state.owner = held
         if n > state.written:
             if name in self.cold:
-                self._write_cold(name, state, tail(rows, state.written, n))
+                for i, row in enumerate(tail(rows, state.written, n), state.written):
+                    staged.add(COLD_ROW, (name, state.generation, i, b"".join(encode(row))))
             else:
-                self._write_chunk(name, state, rows, state.written, n, 0)
-                self._merge(name, state, rows)
+                self._stage_chunk(staged, name, state, rows, state.written, n, 0)
+                self._merge(staged, name, state, rows)
             state.written = n
         return state.generation, n, kind
 
@@ -213,38 +236,25 @@ class MapStore:
         row = self.db.execute(f"SELECT MAX(generation) FROM {table} WHERE log = ?", (name,)).fetchone()
         return max(generation, -1 if row[0] is None else int(row[0])) + 1
 
-    def _write_chunk(self, name: str, state: LogState, rows: Any, first: int, stop: int, level: int) -> None:
-        data, sha = blob(tail(rows, first, stop))
-        self.db.execute(
-            "INSERT OR REPLACE INTO chunks VALUES (?, ?, ?, ?, ?, ?, ?)",
-            (name, state.generation, first, stop - first, level, data, sha),
-        )
+    def _stage_chunk(
+        self, staged: Staged, name: str, state: LogState, rows: Any, first: int, stop: int, level: int
+    ) -> None:
+        data = b"".join(encode(tail(rows, first, stop)))
+        staged.add(CHUNK, (name, state.generation, first, stop - first, level, data))
         assert state.chunks is not None
         state.chunks.append((first, stop - first, level))
-        self.bytes_written += len(data)
 
-    def _merge(self, name: str, state: LogState, rows: Any) -> None:
+    def _merge(self, staged: Staged, name: str, state: LogState, rows: Any) -> None:
         """Merge the last ``FANOUT`` chunks when they are of one level below ``TOP_LEVEL`` (repeatedly: a merge
         can complete one)."""
         chunks = state.chunks
-        assert chunks is not None  # a writer's own log (``_write_log`` starts a new generation otherwise)
+        assert chunks is not None  # a writer's own log (``_stage_log`` starts a new generation otherwise)
         while len(chunks) >= FANOUT and len(lv := {c[2] for c in chunks[-FANOUT:]}) == 1 and min(lv) < TOP_LEVEL:
             merged = chunks[-FANOUT:]
             del chunks[-FANOUT:]
             first, stop = merged[0][0], merged[-1][0] + merged[-1][1]
-            self.db.execute(
-                "DELETE FROM chunks WHERE log = ? AND generation = ? AND first >= ? AND first < ?",
-                (name, state.generation, first, stop),
-            )
-            self._write_chunk(name, state, rows, first, stop, merged[0][2] + 1)
-
-    def _write_cold(self, name: str, state: LogState, rows: list[Any]) -> None:
-        for i, row in enumerate(rows, state.written):
-            data, sha = blob(row)
-            self.db.execute(
-                "INSERT OR REPLACE INTO cold VALUES (?, ?, ?, ?, ?)", (name, state.generation, i, data, sha)
-            )
-            self.bytes_written += len(data)
+            staged.ops.append((DELETE_CHUNKS, (name, state.generation, first, stop)))
+            self._stage_chunk(staged, name, state, rows, first, stop, merged[0][2] + 1)
 
     def _prune(self) -> None:
         """Keep the newest ``keep`` checkpoints; drop the replaced log generations none of them uses."""

@@ -283,7 +283,8 @@ class ServiceNode(NodeQueries):
         """Checkpoint the map store when N keyframes were added since the last checkpoint (or, ``final``,
         anything changed). Called by the worker between frames, or after it stopped: no other thread changes
         the core, so only taking its parts needs the lock (iSAM2 updates a cache that queries read); encoding
-        the new rows and writing run without it. A failed write is counted (``persistence.failed_writes``)."""
+        the new rows runs without it, writing them on the store's writer thread (``final``: waited for). A
+        failed write is counted (``persistence.failed_writes``)."""
         p = self.persistence
         if p is None:
             return False
@@ -295,7 +296,7 @@ class ServiceNode(NodeQueries):
         t0 = time.perf_counter()
         with self._lock:
             small, logs = self._parts()
-        if not p.save(small, logs, keyframes, frames, time.perf_counter() - t0):
+        if not p.save(small, logs, keyframes, frames, time.perf_counter() - t0, wait=final):
             return False
         self._saved_completed = completed
         self.stats.time("snapshot", time.perf_counter() - t0)

@@ -1,24 +1,23 @@
 """The rows of a map store's logs (``service.map_store``): how a log's rows are sliced, joined and told apart,
-and the checksummed blob each chunk, cold row and checkpoint is stored as."""
+how a stored blob is verified and read, and the records the store keeps of its logs, of a checkpoint read back
+and of one staged for writing."""
 
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from itertools import chain, islice
 from typing import Any
 
 import numpy as np
 
-from service.persistence import SnapshotError, decode, encode
+from loops.archive import ColdLog
+from service.persistence import SnapshotError, decode
 
 
 class StoreError(Exception):
     """The map store cannot be opened or read: corrupt, truncated, of a newer schema or another robot's."""
-
-
-def blob(value: Any) -> tuple[bytes, bytes]:
-    data = b"".join(encode(value))
-    return data, hashlib.sha256(data).digest()
 
 
 def unblob(data: bytes, sha: bytes, what: str) -> Any:
@@ -53,3 +52,57 @@ def join(kind: str, pieces: list[Any], length: int) -> Any:
         return np.concatenate(pieces)[:length] if pieces else np.zeros(0)
     rows = list(islice(chain.from_iterable(pieces), length))
     return dict(rows) if kind == "dict" else rows
+
+
+@dataclass
+class LogState:
+    """What the store has of one log: its generation, rows written, kind, level-tagged chunks (first, count,
+    level) of the current generation, and the container written from (held, so that no new container can
+    take its place in memory and pass for it)."""
+
+    generation: int
+    written: int
+    kind: str
+    chunks: list[tuple[int, int, int]] | None = field(default_factory=list)  # None: go on in a new generation
+    owner: Any = None
+
+
+@dataclass(frozen=True)
+class Loaded:
+    """A checkpoint read back: its id, session, creation time, counts, small part and logs (cold ones lazy)."""
+
+    checkpoint: int
+    session: int
+    created: float
+    keyframes: int
+    frames: int
+    small: dict[str, Any]
+    logs: dict[str, Any]
+
+
+CHUNK = "INSERT OR REPLACE INTO chunks VALUES (?, ?, ?, ?, ?, ?, ?)"
+COLD_ROW = "INSERT OR REPLACE INTO cold VALUES (?, ?, ?, ?, ?)"
+DELETE_CHUNKS = "DELETE FROM chunks WHERE log = ? AND generation = ? AND first >= ? AND first < ?"
+
+
+@dataclass
+class Staged:
+    """A checkpoint encoded by ``MapStore.stage``: its statements in order (a blob, last, gets its SHA-256 when
+    written), the logs' lengths (JSON), the small part's bytes, the cold logs to spill once it is committed
+    (log, rows stored, loader), and the writer's books as they were before it."""
+
+    keyframes: int
+    frames: int
+    before: dict[str, LogState]
+    ops: list[tuple[str, tuple[Any, ...]]] = field(default_factory=list)
+    lengths: str = "{}"
+    small: bytes = b""
+    spills: list[tuple[ColdLog, int, Callable[[int], Any]]] = field(default_factory=list)
+
+    def add(self, sql: str, params: tuple[Any, ...]) -> None:
+        self.ops.append((sql, params))
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of blobs: the new rows' and the small part's."""
+        return len(self.small) + sum(len(p[-1]) for _, p in self.ops if isinstance(p[-1], bytes))

@@ -76,7 +76,7 @@ def core_parts(core: SlamCore) -> CoreParts:
         "kf_stamps": core.kf_stamps,
         "kf_points": core.kf_points,
         "keyframe_detections": core.keyframe_detections,
-        "object_poses": core.object_poses,
+        "object_poses": core.object_poses.rows(),
         "segments.keyframe_segment": core.segments.keyframe_segment,
         **_prefixed("graph", graph_logs),
     }

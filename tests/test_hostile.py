@@ -465,16 +465,16 @@ def test_failing_snapshot_writes_back_off_exponentially_and_are_reported(tmp_pat
     db.execute(f"PRAGMA max_page_count = {pages}")  # a full disk: every write that needs a page now fails
     small, logs = {"x": np.zeros(3)}, {"rows": np.zeros((5000, 4))}
     assert persistence.due(5)
-    assert not persistence.save(small, logs, 5, 50)
+    assert not persistence.save(small, logs, 5, 50, wait=True)
     status = persistence.status()
     assert status["failed_writes"] == 1 and status["last_error"] and 0 < status["retry_in_s"] <= 1.0
     assert not persistence.due(6)  # waits out the backoff instead of retrying after every frame
     time.sleep(1.05)
-    assert persistence.due(6) and not persistence.save(small, logs, 6, 60)
+    assert persistence.due(6) and not persistence.save(small, logs, 6, 60, wait=True)
     assert 1.0 < persistence.status()["retry_in_s"] <= 2.0  # doubled
     db.execute("PRAGMA max_page_count = 1073741823")  # space again
     time.sleep(2.05)
-    assert persistence.due(7) and persistence.save(small, logs, 7, 70)
+    assert persistence.due(7) and persistence.save(small, logs, 7, 70, wait=True)
     assert persistence.status()["last_error"] is None and persistence.status()["retry_in_s"] is None
     loaded = persistence.store.load()  # the rows of the failed checkpoints were written with the good one
     assert loaded is not None and loaded.keyframes == 7 and len(loaded.logs["rows"]) == 5000

@@ -182,7 +182,7 @@ def test_a_truncated_store_is_moved_aside_with_a_clear_error_and_a_new_map_begin
     skipped = persistence.status()["skipped_snapshots"]
     assert skipped and any("malformed" in s["reason"] or "rows" in s["reason"] for s in skipped), skipped
     assert restored == []
-    assert persistence.save({"x": 1}, {}, 1, 1)  # a usable store again
+    assert persistence.save({"x": 1}, {}, 1, 1, wait=True)  # a usable store again
 
 
 def _records_lengths(store: MapStore) -> list[int]:
@@ -239,7 +239,7 @@ def test_a_state_directory_of_the_snapshot_release_is_migrated_into_the_store(tm
     assert persistence.status()["resumed_from"]["file"].startswith("snapshot-")
     migrated = box[0]
     parts = core_parts(migrated)
-    assert persistence.save({"pipeline": parts.small}, parts.logs, migrated.graph.num_keyframes, CUT)  # all, once
+    assert persistence.save({"pipeline": parts.small}, parts.logs, migrated.graph.num_keyframes, CUT, wait=True)  # all
 
     again: list = []
     persistence = Persistence(tmp_path, "robot1")
@@ -309,6 +309,36 @@ def test_chunks_merge_up_to_the_top_level_and_read_back_whole(tmp_path):
     assert generations == [(1,)]
     loaded = MapStore(tmp_path / "map.db", "robot1").load()
     assert loaded is not None and loaded.logs["rows"] == [-1, -2]
+
+
+def test_a_checkpoint_waiting_for_the_disk_does_not_hold_the_caller(tmp_path):
+    """The rows are encoded by the caller and written by the store's writer thread: with the database locked by
+    another connection the caller gets on at once, no second checkpoint starts while one is being written,
+    and once the disk is free the checkpoint commits with the rows as they were when it was taken."""
+    persistence = Persistence(tmp_path, "robot1", every_keyframes=1)
+    rows = [np.arange(3) * i for i in range(50)]
+    assert persistence.save({"n": 50}, {"rows": rows}, 1, 50, wait=True)
+    other = sqlite3.connect(tmp_path / "map.db", isolation_level=None)
+    other.execute("BEGIN IMMEDIATE")  # the write lock: the writer thread waits for it
+    try:
+        rows.append(np.arange(3) * 50)
+        t0 = time.perf_counter()
+        assert persistence.save({"n": 51}, {"rows": rows}, 2, 51)
+        assert time.perf_counter() - t0 < 0.5
+        rows.append(np.full(3, -1))  # a row after the checkpoint was taken: not in it
+        time.sleep(0.3)
+        assert persistence.writing and not persistence.due(3)
+    finally:
+        other.execute("ROLLBACK")
+        other.close()
+    assert persistence.settle() and not persistence.writing
+    status = persistence.status()
+    assert status["last_snapshot"]["keyframes"] == 2 and status["failed_writes"] == 0
+    assert status["last_snapshot"]["write_ms"] >= 250  # it waited for the lock on the writer thread
+    loaded = MapStore(tmp_path / "map.db", "robot1").load()
+    assert loaded is not None and loaded.small == {"n": 51} and len(loaded.logs["rows"]) == 51
+    assert np.array_equal(loaded.logs["rows"][50], np.arange(3) * 50)
+    persistence.close()
 
 
 def test_a_failed_checkpoint_leaves_the_writer_as_before_and_the_next_one_writes_its_rows(tmp_path):
