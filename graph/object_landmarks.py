@@ -155,12 +155,23 @@ class ObjectLandmarks:
 
     def parts(self) -> tuple[dict, dict]:
         """``state()`` in two parts: the assignments (rewritten as tracks move between landmarks), and the
-        measurements, an append-only log (one per keyframe and track, live)."""
-        return {"assigned": self.assigned, "track_landmark": self.track_landmark, "failures": self.failures}, {
+        measurements, an append-only log (one per keyframe and track, live). The assignments are an array
+        (keyframe, track, landmark, factor index or -1), so a checkpoint copies them instead of pickling each."""
+        rows = [(k, t, j, -1 if i is None else i) for (k, t), (j, i) in self.assigned.items()]
+        assigned = np.array(rows, np.int64).reshape(-1, 4)
+        return {"assigned": assigned, "track_landmark": self.track_landmark, "failures": self.failures}, {
             "measurements": self.measurements
         }
 
     def restore(self, state: dict) -> None:
-        self.measurements, self.assigned = state["measurements"], state["assigned"]
+        self.measurements, self.assigned = state["measurements"], _assignments(state["assigned"])
         self.track_landmark = state["track_landmark"]
         self.failures = state["failures"]
+
+
+def _assignments(saved: dict | np.ndarray) -> dict[Key, tuple[int, int | None]]:
+    """``ObjectLandmarks.parts``' array of assignments as the dict it holds (a state before 2026-12-03: the
+    dict itself)."""
+    if isinstance(saved, dict):
+        return saved
+    return {(int(k), int(t)): (int(j), None if i < 0 else int(i)) for k, t, j, i in saved.tolist()}

@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 import hdbscan
 import numpy as np
 
-from perception.features import FeatureVector, merge_features
+from perception.coincident import coincident_groups
+from perception.features import FeatureVector, merge_features, merge_track_runs
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +46,9 @@ class ClusterConfig:
     """Bound N on clustered vectors; above it, consecutive vectors of each track are pooled (keeps O(N^2) fast)."""
     merge_distance: float = 2.0
     """Same-class clusters whose pooled Gaussians are within this distance D are one object (partial views)."""
+    coincident: float = 1.0
+    """Same-class objects whose centres are closer than this fraction of the smaller one's half-extent are one
+    (``perception.coincident``); 0: never."""
 
 
 @dataclass(frozen=True)
@@ -188,41 +192,6 @@ def merge_overlapping(
     return list(groups.values())
 
 
-def merge_track_runs(features: Sequence[FeatureVector], run: int) -> list[FeatureVector]:
-    """Pool each track's consecutive feature vectors in runs of ``run`` (moment sums, vectorised)."""
-    tracks = np.array([f.track_id for f in features])
-    order = np.argsort(tracks, kind="stable")
-    starts = np.r_[0, np.flatnonzero(np.diff(tracks[order])) + 1]
-    position = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
-    _, group = np.unique(np.stack([tracks[order], position // run], axis=1), axis=0, return_inverse=True)
-    group = group.ravel()
-    n = np.array([features[i].n for i in order], float)
-    mu = np.array([features[i].mean for i in order])
-    second = np.array([features[i].cov for i in order]) + mu[:, :, None] * mu[:, None, :]
-    g = int(group.max()) + 1
-    s0 = np.bincount(group, n, minlength=g)
-    s1 = np.stack([np.bincount(group, n * mu[:, a], minlength=g) for a in range(3)], axis=1)
-    s2 = np.zeros((g, 3, 3))
-    np.add.at(s2, group, n[:, None, None] * second)
-    mean = s1 / s0[:, None]
-    cov = s2 / s0[:, None, None] - mean[:, :, None] * mean[:, None, :]
-    first = np.unique(group, return_index=True)[1]
-    sources: list[list[int]] = [[] for _ in range(g)]
-    for k, i in zip(group, order, strict=True):
-        sources[k].extend(features[i].sources)
-    return [
-        FeatureVector(
-            mean[k],
-            cov[k],
-            int(s0[k]),
-            features[order[first[k]]].label,
-            features[order[first[k]]].track_id,
-            tuple(sources[k]),
-        )
-        for k in range(g)
-    ]
-
-
 PARTS_STD_M = 0.35
 """Views whose own extent exceeds this standard deviation (a uniform extent of 1.2 m: tables, couches, beds) are
 parts of a large object rather than noisy copies of a whole one (``robust_gaussian``)."""
@@ -363,7 +332,20 @@ class Clusterer:
         ]
         if self.config.merge_distance > 0:
             clusters = merge_overlapping(clusters, self.config, self.keyframe_of)
-        self.objects = self._carry_ids(sorted(clusters, key=len, reverse=True))
+        clusters = sorted(clusters, key=len, reverse=True)
+        objects = self._carry_ids(clusters)
+        if self.config.coincident > 0 and len(objects) > 1:
+            groups = coincident_groups(
+                [o.label for o in objects],
+                np.array([o.mean for o in objects]),
+                np.array([o.cov for o in objects]),
+                self.config.axis_scale,
+                self.config.coincident,
+            )
+            if len(groups) < len(objects):
+                clusters = sorted(([f for i in g for f in clusters[i]] for g in groups), key=len, reverse=True)
+                objects = self._carry_ids(clusters)
+        self.objects = objects
         self.reclusterings += 1
         self._fit = self._out = self._new = 0
         log.debug("re-clustered %d feature vectors into %d objects", len(self.features), len(self.objects))

@@ -274,3 +274,38 @@ def merge_features(features: Sequence[FeatureVector]) -> FeatureVector:
     cov = np.einsum("k,kij->ij", w, np.stack([f.cov for f in features])) + (d.T * w) @ d
     sources = tuple(i for f in features for i in f.sources)
     return FeatureVector(mean, cov, int(n.sum()), features[0].label, features[0].track_id, sources)
+
+
+def merge_track_runs(features: Sequence[FeatureVector], run: int) -> list[FeatureVector]:
+    """Pool each track's consecutive feature vectors in runs of ``run`` (moment sums, vectorised)."""
+    tracks = np.array([f.track_id for f in features])
+    order = np.argsort(tracks, kind="stable")
+    starts = np.r_[0, np.flatnonzero(np.diff(tracks[order])) + 1]
+    position = np.arange(len(order)) - np.repeat(starts, np.diff(np.r_[starts, len(order)]))
+    _, group = np.unique(np.stack([tracks[order], position // run], axis=1), axis=0, return_inverse=True)
+    group = group.ravel()
+    n = np.array([features[i].n for i in order], float)
+    mu = np.array([features[i].mean for i in order])
+    second = np.array([features[i].cov for i in order]) + mu[:, :, None] * mu[:, None, :]
+    g = int(group.max()) + 1
+    s0 = np.bincount(group, n, minlength=g)
+    s1 = np.stack([np.bincount(group, n * mu[:, a], minlength=g) for a in range(3)], axis=1)
+    s2 = np.zeros((g, 3, 3))
+    np.add.at(s2, group, n[:, None, None] * second)
+    mean = s1 / s0[:, None]
+    cov = s2 / s0[:, None, None] - mean[:, :, None] * mean[:, None, :]
+    first = np.unique(group, return_index=True)[1]
+    sources: list[list[int]] = [[] for _ in range(g)]
+    for k, i in zip(group, order, strict=True):
+        sources[k].extend(features[i].sources)
+    return [
+        FeatureVector(
+            mean[k],
+            cov[k],
+            int(s0[k]),
+            features[order[first[k]]].label,
+            features[order[first[k]]].track_id,
+            tuple(sources[k]),
+        )
+        for k in range(g)
+    ]

@@ -187,3 +187,34 @@ def test_a_large_object_s_views_are_parts_and_are_pooled_as_they_are() -> None:
     centre, cov = robust_gaussian(means, covs, weights)
     pooled = merge_features([FeatureVector(m, c, 100, "dining table") for m, c in zip(means, covs, strict=True)])
     assert np.allclose(centre, pooled.mean) and np.allclose(cov, pooled.cov)
+
+
+def test_same_class_objects_standing_in_one_place_are_one_but_neighbours_in_a_row_stay_two() -> None:
+    from perception.coincident import coincident_groups, extent_radius
+
+    chair = np.diag([0.15, 0.15, 0.25]) ** 2  # a chair's spread of points (m^2)
+    cup = np.diag([0.03, 0.03, 0.04]) ** 2
+    assert extent_radius(chair, 1.5) == pytest.approx(1.5 * 0.15)
+    means = np.array([[0.0, 0, 0.45], [0.12, 0, 0.45], [0.5, 0, 0.45], [0.0, 0.0, 0.8], [0.06, 0, 0.8]])
+    covs = np.array([chair, chair, chair, cup, cup])
+    labels = ["chair", "chair", "chair", "cup", "cup"]
+    # the first two chairs stand inside each other: one; the third, 0.5 m along a row: its own; a cup on the
+    # first chair is another class; two cups 6 cm apart, each 4.5 cm across its median half-extent: two
+    assert coincident_groups(labels, means, covs, 1.5, 1.0) == [[0, 1], [2], [3], [4]]
+    assert coincident_groups(labels, means, covs, 1.5, 0.0) == [[0], [1], [2], [3], [4]]
+
+
+def test_the_clusterer_joins_two_clusters_of_one_chair_that_share_a_keyframe() -> None:
+    """Two clusters 0.1 m apart, each holding a view of one keyframe (the cannot-link kept them apart): one
+    chair; a chair 0.65 m away in the same keyframes stays its own."""
+    clusterer = Clusterer(ClusterConfig(min_cluster_size=3, min_samples=3))
+    rng = np.random.default_rng(4)
+    views = []
+    for k, x in enumerate([0.0] * 8 + [0.1] * 8 + [0.75] * 8):
+        mean = np.array([x, 0.0, 0.45]) + rng.normal(0, 0.005, 3)
+        views.append(FeatureVector(mean, np.diag([0.02, 0.02, 0.05]), 50, "chair", k, (k,)))
+    clusterer.keyframe_of = [k % 8 for k in range(24)]  # every keyframe saw all three
+    clusterer.add(views)
+    assert len(clusterer.recluster()) == 2
+    clusterer.config = ClusterConfig(min_cluster_size=3, min_samples=3, coincident=0.0)
+    assert len(clusterer.recluster()) == 3
