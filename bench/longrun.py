@@ -30,6 +30,7 @@ import numpy as np
 from bench.report import StealMeter, load_note, markdown_table, record, show_table
 from perception.frame import Frame, FrameRejected
 from service.config import Settings, load_settings
+from service.heap import building_map
 from service.map_persistence import Persistence
 from service.map_store import MapStore
 from slam.build import build_core
@@ -101,13 +102,14 @@ def restart(path: Path, overrides: dict[str, Any], poses_out: Path | None = None
     before = rss_mb()
     t0 = time.perf_counter()
     settings = load_settings(overrides=overrides)
-    reader = MapStore(path, settings.robot, COLD)
-    loaded = reader.load()
-    if loaded is None:
-        raise RuntimeError(f"{path}: no checkpoint to restart from")
-    t1 = time.perf_counter()
-    core = restore_core(settings, assemble(CoreParts(loaded.small, loaded.logs), materialize=False))
-    t2 = time.perf_counter()
+    with building_map():  # as ``Persistence.resume`` does
+        reader = MapStore(path, settings.robot, COLD)
+        loaded = reader.load()
+        if loaded is None:
+            raise RuntimeError(f"{path}: no checkpoint to restart from")
+        t1 = time.perf_counter()
+        core = restore_core(settings, assemble(CoreParts(loaded.small, loaded.logs), materialize=False))
+        t2 = time.perf_counter()
     if poses_out is not None:
         np.save(poses_out, core.trajectory().poses)
     out = {

@@ -11,7 +11,6 @@ with the reason logged and in ``status``, and a new map begins; one of another r
 
 from __future__ import annotations
 
-import gc
 import logging
 import sqlite3
 import threading
@@ -22,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from service.config import ConfigError
+from service.heap import building_map, settle_map
 from service.map_store import SCHEMA_VERSION, MapStore, StoreError
 from service.persistence import SnapshotStore
 from service.store_rows import Staged
@@ -79,7 +79,8 @@ class Persistence:
     def resume(self, restore: Callable[[dict[str, Any]], None], join: Callable[[dict, dict], dict]) -> bool:
         """Restore the newest good checkpoint (``restore(join(small, logs))``), else migrate the newest good
         snapshot of an older release; start this run's session. True when something was resumed."""
-        resumed = self._resume_store(restore, join) or self._migrate(restore)
+        with building_map():
+            resumed = self._resume_store(restore, join) or self._migrate(restore)
         self.store.start_session({"resumed": self.resumed_from})
         return resumed
 
@@ -168,11 +169,7 @@ class Persistence:
         self.settle()
         t0 = time.perf_counter()
         staged = self.store.stage(small, logs, keyframes, frames)
-        # What is alive now is mostly the map, and the map lives on: out of the cyclic collector's reach, its
-        # full collections scan only what is newer (scanning the map stalled the worker 60-300 ms on maps of
-        # 1,000-11,000 keyframes, mostly inside the checkpoint's encoding). Cyclic garbage made before and
-        # freed after is not collected: bench longrun's RSS per keyframe measures that it stays small.
-        gc.freeze()
+        settle_map()  # the map lives on: full collections need not scan it again (``service.heap``)
         encode_s = time.perf_counter() - t0
         self._inflight = self._writer.submit(self._write, staged, capture_s, encode_s)
         return self.settle() if wait else True

@@ -37,6 +37,7 @@ from service.store_rows import (
     CHUNK,
     COLD_ROW,
     DELETE_CHUNKS,
+    FrozenRows,
     Loaded,
     LogState,
     Staged,
@@ -181,10 +182,12 @@ class MapStore:
         t0 = time.perf_counter()
         try:
             with self.transaction():
-                for sql, params in staged.ops:
-                    blob_ = params[-1]
-                    if isinstance(blob_, bytes):
-                        params = (*params, hashlib.sha256(blob_).digest())
+                for at, (sql, params) in enumerate(staged.ops):
+                    if isinstance(params[-1], FrozenRows):  # encoded here, on the writer thread
+                        params = (*params[:-1], b"".join(encode(params[-1].rows)))
+                        staged.ops[at] = (sql, params)
+                    if isinstance(params[-1], bytes):
+                        params = (*params, hashlib.sha256(params[-1]).digest())
                     self.db.execute(sql, params)
                 cur = self.db.execute(
                     "INSERT INTO checkpoints (session, created, keyframes, frames, logs, small, sha) "
@@ -239,7 +242,8 @@ class MapStore:
     def _stage_chunk(
         self, staged: Staged, name: str, state: LogState, rows: Any, first: int, stop: int, level: int
     ) -> None:
-        data = b"".join(encode(tail(rows, first, stop)))
+        part = tail(rows, first, stop)
+        data = FrozenRows(part) if FrozenRows.admits(part) else b"".join(encode(part))
         staged.add(CHUNK, (name, state.generation, first, stop - first, level, data))
         assert state.chunks is not None
         state.chunks.append((first, stop - first, level))

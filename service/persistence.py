@@ -61,7 +61,7 @@ class SnapshotError(Exception):
     """A snapshot file is truncated, corrupt, of another format, or holds a type it must not."""
 
 
-def encode(state: dict[str, Any]) -> list[memoryview]:
+def encode(state: Any) -> list[memoryview]:
     """The payload of a snapshot of ``state`` (plain data only), as pieces to write back to back.
 
     Pickle protocol 5 with out-of-band buffers: a table (stream length, buffer count, buffer lengths), the

@@ -407,3 +407,24 @@ def test_a_rolling_window_resumes_exactly_from_the_store_and_checkpoints_stay_th
     core.close()
     restored.close()
     store.close()
+
+
+def test_a_long_chunk_of_frozen_records_is_encoded_by_the_writer_and_reads_back_the_same(tmp_path):
+    """Rows nothing changes (frozen dataclasses) are encoded when written, not when staged; what reads back is
+    what the checkpoint took, and small chunks and other rows are encoded at once."""
+    from graph.factors import FactorRecord
+    from service.store_rows import FrozenRows
+
+    rng = np.random.default_rng(3)
+    factors = [FactorRecord(i, i + 1, rng.normal(size=(4, 4)), 0.01, 0.02) for i in range(300)]
+    store = MapStore(tmp_path / "map.db", "robot1")
+    staged = store.stage({"n": 300}, {"factors": factors, "ids": list(range(300))}, 1, 1)
+    blobs = {p[0]: p[-1] for _, p in staged.ops}
+    assert isinstance(blobs["factors"], FrozenRows) and isinstance(blobs["ids"], bytes)
+    taken = list(factors)
+    del factors[10:]  # the caller goes on with its log; the staged rows are a list of their own
+    store.write(staged)
+    loaded = MapStore(tmp_path / "map.db", "robot1").load()
+    assert loaded is not None and len(loaded.logs["factors"]) == 300
+    assert all(np.array_equal(a.measurement, b.measurement) for a, b in zip(loaded.logs["factors"], taken, strict=True))
+    assert not FrozenRows.admits([replace(factors[0])] * 10) and not FrozenRows.admits(list(range(300)))
