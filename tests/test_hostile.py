@@ -395,6 +395,8 @@ def test_a_garbage_flood_at_ten_times_the_frame_rate_never_displaces_a_good_fram
     import os
     import time
 
+    import zenoh
+
     from service.protocol import encode_frame
     from tests.conftest import make_frame
 
@@ -407,7 +409,9 @@ def test_a_garbage_flood_at_ten_times_the_frame_rate_never_displaces_a_good_fram
         _message_with(depth=_png16_zeros(3000, 3000)),
         b"\x00" * 1_000_000,
     ]
-    pub = client.declare_publisher("objslam/hostile/rgbd")
+    # BLOCK: the transport must deliver every message (by default zenoh drops a put when its queue is full,
+    # and a lost message left the count short about one run in eight); what is tested is the service
+    pub = client.declare_publisher("objslam/hostile/rgbd", congestion_control=zenoh.CongestionControl.BLOCK)
     good = 30
     for i in range(good):
         while node.stats.processed < i - 4:  # at most 4 good frames in flight: the queue of 8 holds them
