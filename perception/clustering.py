@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import hdbscan
 import numpy as np
@@ -343,8 +343,10 @@ class Clusterer:
                 self.config.coincident,
             )
             if len(groups) < len(objects):
-                clusters = sorted(([f for i in g for f in clusters[i]] for g in groups), key=len, reverse=True)
-                objects = self._carry_ids(clusters)
+                made = {id(c): o for c, o in zip(clusters, objects, strict=True)}  # the clusters left as they were
+                joined = [clusters[g[0]] if len(g) == 1 else [f for i in g for f in clusters[i]] for g in groups]
+                clusters = sorted(joined, key=len, reverse=True)
+                objects = self._carry_ids(clusters, made)
         self.objects = objects
         self.reclusterings += 1
         self._fit = self._out = self._new = 0
@@ -359,8 +361,11 @@ class Clusterer:
                 return
             self.features = merged
 
-    def _carry_ids(self, clusters: list[list[FeatureVector]]) -> list[ObjectEllipsoid]:
-        """Objects for new clusters; each keeps the id of the old object sharing most of its tracks."""
+    def _carry_ids(
+        self, clusters: list[list[FeatureVector]], made: dict[int, ObjectEllipsoid] | None = None
+    ) -> list[ObjectEllipsoid]:
+        """Objects for new clusters; each keeps the id of the old object sharing most of its tracks. ``made``:
+        objects already located, by ``id`` of their cluster's list (only their id is set here)."""
         used: set[int] = set()
         out = []
         for members in clusters:
@@ -374,5 +379,10 @@ class Clusterer:
             else:
                 oid, self._next_id = self._next_id, self._next_id + 1
             used.add(oid)
-            out.append(ellipsoid(members, oid, self.config.axis_scale, self.locate))
+            known = (made or {}).get(id(members))
+            out.append(
+                replace(known, id=oid)
+                if known is not None
+                else ellipsoid(members, oid, self.config.axis_scale, self.locate)
+            )
         return out

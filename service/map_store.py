@@ -257,7 +257,7 @@ class MapStore:
             merged = chunks[-FANOUT:]
             del chunks[-FANOUT:]
             first, stop = merged[0][0], merged[-1][0] + merged[-1][1]
-            staged.ops.append((DELETE_CHUNKS, (name, state.generation, first, stop)))
+            staged.add(DELETE_CHUNKS, (name, state.generation, first, stop))
             self._stage_chunk(staged, name, state, rows, first, stop, merged[0][2] + 1)
 
     def _prune(self) -> None:
