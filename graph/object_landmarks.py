@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from graph.errors import SolverError
 from graph.interface import Graph
+from graph.row_log import RowLog
 
 log = logging.getLogger(__name__)
 
@@ -63,8 +64,23 @@ class ObjectLandmarks:
         self.graph, self.config = graph, config or LandmarkSettings()
         self.measurements: dict[Key, np.ndarray] = {}  # (x, y, z, sigma)
         self.assigned: dict[Key, tuple[int, int | None]] = {}  # -> (landmark, factor index; None while waiting)
+        self.journal = _journal()  # every change of ``assigned`` (``_assign``): what a store writes of it
         self.track_landmark: dict[int, int] = {}
         self.failures = 0
+
+    def _assign(self, key: Key, j: int, i: int | None) -> None:
+        self.assigned[key] = (j, i)
+        self.journal.append((key[0], key[1], j, -1 if i is None else i))
+
+    def _unassign(self, key: Key) -> tuple[int, int | None]:
+        self.journal.append((key[0], key[1], UNASSIGNED, -1))
+        return self.assigned.pop(key)
+
+    def _compact(self) -> None:
+        """Start the journal again from the assignments once it holds more changes than twice their number (a
+        store writes the new journal whole: amortised, a constant cost per change)."""
+        if len(self.journal) > 2 * len(self.assigned) + COMPACT_SLACK:
+            self.journal = _journal(self.assigned)
 
     def observe(self, k: int, observations: Iterable[tuple[int, np.ndarray, float]]) -> int:
         """Keyframe ``k``'s measurements ``(track id, p, extent)``: the centroid ``p`` in the keyframe's pose
@@ -121,8 +137,9 @@ class ObjectLandmarks:
             log.error("object landmark measurements rejected by the solver (%d items): %s", len(items), exc)
             return 0
         for (key, j), i in zip(items, indices, strict=True):
-            self.assigned[key] = (j, i)
+            self._assign(key, j, i)
         self._resolve(waiting & self.graph.landmarks_in_solver())
+        self._compact()
         return len(items)
 
     def _resolve(self, entered: set[int]) -> None:
@@ -132,12 +149,12 @@ class ObjectLandmarks:
         found = self.graph.landmark_factor_indices(entered)
         for key, (j, i) in list(self.assigned.items()):
             if i is None and j in entered:
-                self.assigned[key] = (j, found.get((j, key[0], self.measurements[key][:3].tobytes())))
+                self._assign(key, j, found.get((j, key[0], self.measurements[key][:3].tobytes())))
 
     def _retract(self, keys: list[Key]) -> None:
         indices = []
         for key in keys:
-            j, i = self.assigned.pop(key)
+            j, i = self._unassign(key)
             if i is None:
                 self.graph.withdraw_waiting(j, key[0], self.measurements[key][:3])
             else:
@@ -148,30 +165,63 @@ class ObjectLandmarks:
             except SolverError as exc:
                 self.failures += 1
                 log.error("retracting %d object landmark measurements failed: %s", len(indices), exc)
+        self._compact()
 
     def state(self) -> dict:
         small, logs = self.parts()
         return {**small, **logs}
 
     def parts(self) -> tuple[dict, dict]:
-        """``state()`` in two parts: the assignments (rewritten as tracks move between landmarks), and the
-        measurements, an append-only log (one per keyframe and track, live). The assignments are an array
-        (keyframe, track, landmark, factor index or -1), so a checkpoint copies them instead of pickling each."""
-        rows = [(k, t, j, -1 if i is None else i) for (k, t), (j, i) in self.assigned.items()]
-        assigned = np.array(rows, np.int64).reshape(-1, 4)
-        return {"assigned": assigned, "track_landmark": self.track_landmark, "failures": self.failures}, {
-            "measurements": self.measurements
+        """``state()`` in two parts: the small one, and two append-only logs (live): the measurements (one per
+        keyframe and track) and the journal of the assignments' changes, rows (keyframe, track, landmark or
+        ``UNASSIGNED``, factor index or -1) in one array. A checkpoint writes the changes since the last one,
+        not the assignments, which grow with the map (stored whole, they were most of a checkpoint's bytes)."""
+        return {"track_landmark": self.track_landmark, "failures": self.failures}, {
+            "measurements": self.measurements,
+            "journal": self.journal.rows(),
         }
 
     def restore(self, state: dict) -> None:
-        self.measurements, self.assigned = state["measurements"], _assignments(state["assigned"])
+        self.measurements = state["measurements"]
+        if state.get("journal") is not None:
+            self.assigned = replayed(state["journal"])
+            self.journal = _journal(rows=state["journal"])
+        else:  # saved before 2026-12-04: the assignments themselves
+            self.assigned = _assignments(state["assigned"])
+            self.journal = _journal(self.assigned)
         self.track_landmark = state["track_landmark"]
         self.failures = state["failures"]
 
 
+UNASSIGNED = -1
+"""The landmark of a journal row that takes an assignment back."""
+COMPACT_SLACK = 1024
+"""Journal rows beyond twice the assignments before it is started again from them."""
+
+
+def _journal(assigned: dict[Key, tuple[int, int | None]] | None = None, rows: np.ndarray | None = None) -> RowLog:
+    """A journal of ``assigned`` (each assignment a row), or of the journal ``rows`` read back."""
+    if rows is None:
+        rows = np.array(
+            [(k, t, j, -1 if i is None else i) for (k, t), (j, i) in (assigned or {}).items()], np.int64
+        ).reshape(-1, 4)
+    return RowLog((4,), np.int64, rows)
+
+
+def replayed(journal: np.ndarray) -> dict[Key, tuple[int, int | None]]:
+    """The assignments after the changes of ``journal`` in order."""
+    assigned: dict[Key, tuple[int, int | None]] = {}
+    for k, t, j, i in np.asarray(journal, np.int64).reshape(-1, 4).tolist():
+        if j == UNASSIGNED:
+            assigned.pop((k, t), None)
+        else:
+            assigned[(k, t)] = (j, None if i < 0 else i)
+    return assigned
+
+
 def _assignments(saved: dict | np.ndarray) -> dict[Key, tuple[int, int | None]]:
-    """``ObjectLandmarks.parts``' array of assignments as the dict it holds (a state before 2026-12-03: the
-    dict itself)."""
+    """The assignments of a state saved before 2026-12-04: an array (keyframe, track, landmark, factor index or
+    -1), or before 2026-12-03 the dict itself."""
     if isinstance(saved, dict):
         return saved
     return {(int(k), int(t)): (int(j), None if i < 0 else int(i)) for k, t, j, i in saved.tolist()}

@@ -35,9 +35,16 @@ def kind_of(rows: Any) -> str:
 
 
 def tail(rows: Any, start: int, stop: int | None = None) -> Any:
-    """Rows ``[start, stop)`` of a log: an array slice, a list slice, or a dict's items as a list."""
+    """Rows ``[start, stop)`` of a log: an array slice, a list slice, or a dict's items as a list (the newest
+    ones taken from the end: the cost of the rows taken, not of the rows before them)."""
     if isinstance(rows, dict):
-        return list(islice(rows.items(), start, stop))
+        n = len(rows)
+        stop = n if stop is None else min(stop, n)
+        if start >= stop:
+            return []
+        if start < n - stop:
+            return list(islice(rows.items(), start, stop))
+        return list(islice(reversed(rows.items()), n - stop, n - start))[::-1]
     return rows[start:stop] if isinstance(rows, np.ndarray) else list(rows[start:stop])
 
 

@@ -128,7 +128,12 @@ def assemble(parts: CoreParts, materialize: bool = True) -> dict[str, Any]:
     if small["objects"] is not None:
         state["objects"] = objects_joined(small["objects"], _unprefixed("objects", logs))
     if small["landmarks"] is not None:
-        state["landmarks"] = {**small["landmarks"], "measurements": dict(logs["landmarks.measurements"])}
+        journal = logs.get("landmarks.journal")  # stored since 2026-12-04 (before: ``assigned`` in the small part)
+        state["landmarks"] = {
+            **small["landmarks"],
+            "measurements": dict(logs["landmarks.measurements"]),
+            "journal": None if journal is None else np.asarray(journal, np.int64).reshape(-1, 4),
+        }
     if small["loops"] is not None:
         state["loops"] = loops_joined(small["loops"], _unprefixed("loops", logs), materialize)
     return state

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from evaluation.trajectory_metrics import umeyama
 from loops.archive import RESIDENT, ColdLog
@@ -22,6 +24,7 @@ from service.config import load_settings
 from service.map_persistence import Persistence, service_state
 from service.map_store import SCHEMA_VERSION, MapStore, StoreError
 from service.persistence import SnapshotStore, encode
+from service.store_rows import tail
 from slam.build import build_core
 from slam.parts import COLD, CoreParts, assemble, core_parts
 from slam.snapshot import core_state, restore_core
@@ -428,3 +431,12 @@ def test_a_long_chunk_of_frozen_records_is_encoded_by_the_writer_and_reads_back_
     assert loaded is not None and len(loaded.logs["factors"]) == 300
     assert all(np.array_equal(a.measurement, b.measurement) for a, b in zip(loaded.logs["factors"], taken, strict=True))
     assert not FrozenRows.admits([replace(factors[0])] * 10) and not FrozenRows.admits(list(range(300)))
+
+
+@given(st.integers(0, 40), st.integers(0, 60), st.one_of(st.none(), st.integers(0, 60)))
+def test_the_rows_of_a_dict_log_are_its_items_in_order_whichever_end_they_are_taken_from(n, start, stop):
+    rows = {(i, -i): np.full(2, i) for i in range(n)}
+    expected = list(rows.items())[start:stop]
+    got = tail(rows, start, stop)
+    assert [k for k, _ in got] == [k for k, _ in expected] and len(got) == len(expected)
+    assert all(a is b for (_, a), (_, b) in zip(got, expected, strict=True))

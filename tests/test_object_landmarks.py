@@ -11,8 +11,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from bench.association import load_scene
-from graph.object_landmarks import LandmarkSettings, ObjectLandmarks
+from graph import object_landmarks
+from graph.object_landmarks import LandmarkSettings, ObjectLandmarks, replayed
 from graph.pose_graph import PoseGraph
+from graph.row_log import RowLog
 from perception.clustering import ObjectEllipsoid
 from perception.features import FeatureConfig, transform_feature
 from perception.object_map import ObjectMapper
@@ -188,3 +190,39 @@ def test_a_view_cut_by_the_image_border_weighs_less_in_the_pooled_object(scene):
         assert len(mapper.last_observations) == 1  # the whole view only
     assert counts[1.0][0] == counts[0.25][0]
     assert counts[0.25][1] == round(0.25 * counts[1.0][1])
+
+
+def test_the_journal_of_assignments_replays_to_them_and_stays_bounded(monkeypatch):
+    monkeypatch.setattr(object_landmarks, "COMPACT_SLACK", 8)
+    g, poses = _chain(12)
+    a, b = np.array([0.5, 0.2, 2.0]), np.array([-0.4, 0.1, 2.5])
+    lm = ObjectLandmarks(g, LandmarkSettings(landmark_sigma_m=0.01, landmark_huber_k=None, landmark_min_support=1))
+    splits = [[_obj(1, {1, 2}), _obj(2, {3})], [_obj(1, {1}), _obj(5, {2}), _obj(2, {3})], [_obj(1, {1, 2, 3})]]
+    compacted = 0
+    for k in range(12):  # tracks move between objects after every keyframe; waiting ones resolve on the way
+        lm.observe(k, [(1, _seen(poses[k], a), 0.0), (2, _seen(poses[k], a), 0.0), (3, _seen(poses[k], b), 0.0)])
+        journal = lm.journal
+        lm.sync(splits[k % 3])
+        compacted += lm.journal is not journal
+        assert replayed(lm.journal.rows()) == lm.assigned
+        assert len(lm.journal) <= 2 * len(lm.assigned) + 8 + 3 * 3  # compacted after each change at most
+    assert compacted > 0 and len(lm.assigned) == 36
+    restored = ObjectLandmarks(g, lm.config)
+    restored.restore(lm.state())
+    assert restored.assigned == lm.assigned
+    saved = np.array([(k, t, j, -1 if i is None else i) for (k, t), (j, i) in lm.assigned.items()])
+    old = {**lm.state(), "journal": None, "assigned": saved}  # a state saved before the journal
+    restored.restore(old)
+    assert restored.assigned == lm.assigned and replayed(restored.journal.rows()) == lm.assigned
+
+
+def test_a_row_log_keeps_its_rows_as_it_grows_and_hands_out_read_only_views():
+    log = RowLog((4,), np.int64)
+    for n in range(40):
+        log.append((n, -n, 2 * n, 7))
+    rows = log.rows()
+    assert rows.shape == (40, 4) and rows[:, 0].tolist() == list(range(40)) and rows[39].tolist() == [39, -39, 78, 7]
+    with pytest.raises(ValueError):
+        rows[0, 0] = 1
+    again = RowLog((4,), np.int64, rows)
+    assert np.array_equal(again.rows(), rows) and len(again) == 40
