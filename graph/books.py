@@ -102,11 +102,12 @@ class Books:
         return small, {**logs, "updates": self.log}
 
 
-def joined_columns(small: dict[str, Any], logs: dict[str, Any]) -> dict[str, Any]:
-    """``Books.columns()`` of its parts (logs as any sequences)."""
+def joined_columns(small: dict[str, Any], logs: dict[str, Any], records: bool = False) -> dict[str, Any]:
+    """``Books.columns()`` of its parts (logs as any sequences); ``records``: the factors as the list of records
+    they are (``from_columns`` takes either), not turned into columns only to be turned back."""
     return {
         **small,
-        "factors": to_columns(list(logs["factors"])),
+        "factors": list(logs["factors"]) if records else to_columns(list(logs["factors"])),
         "initial": np.array(list(logs["initial"]), float).reshape(-1, 4, 4),
         "landmark_initial": np.array(list(logs["landmark_initial"]), float).reshape(-1, 3),
         "updates": list(logs["updates"]),

@@ -146,9 +146,11 @@ def _covariance_column(covariance: np.ndarray | None) -> np.ndarray:
     return out
 
 
-def from_columns(c: dict[str, Any]) -> list[FactorRecord]:
+def from_columns(c: dict[str, Any] | list[FactorRecord]) -> list[FactorRecord]:
     """The records of ``to_columns`` (columns without ``kind``, from before landmarks, are all POSE; without
-    ``covariance`` or ``range_sigma_m``, from older snapshots, none has one)."""
+    ``covariance`` or ``range_sigma_m``, from older snapshots, none has one); records given as they are."""
+    if isinstance(c, list):
+        return c
     n = len(c["a"])
     kinds = [FactorKind(int(kind)) for kind in c.get("kind", np.zeros(n, np.int64))]
     covariances = c.get("covariance", np.full((n, 6, 6), np.nan))

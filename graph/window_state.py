@@ -58,17 +58,18 @@ def window_parts(g: WindowedGraph) -> tuple[dict[str, Any], dict[str, Any]]:
     return small, logs
 
 
-def joined(small: dict[str, Any], logs: dict[str, Any]) -> dict[str, Any]:
+def joined(small: dict[str, Any], logs: dict[str, Any], records: bool = False) -> dict[str, Any]:
     """``WindowedGraph.state()`` of its parts (logs as lists or arrays, of any sequence type), without the
-    estimates of a rebuilt window."""
+    estimates of a rebuilt window; ``records``: the factors as records, not columns (``joined_columns``)."""
     state = {k: v for k, v in small.items() if k != "window"}
-    state.update(joined_columns({}, {name: logs[name] for name in LOGS}))
+    state.update(joined_columns({}, {name: logs[name] for name in LOGS}, records))
     window = dict(small["window"])
     removed = sorted({int(i) for entry in state["updates"] for i in entry[2]})  # what ``Books.record`` removed
     window["removed"] = np.array(removed, np.int64)
     if "fixed" in logs:
         window["fixed"] = np.array(logs["fixed"], float).reshape(-1, 4, 4)
-        window["local"] = {**window["local"], **joined_columns({}, {name: logs[f"local.{name}"] for name in LOGS})}
+        local = joined_columns({}, {name: logs[f"local.{name}"] for name in LOGS}, records)
+        window["local"] = {**window["local"], **local}
         gone = set(removed)
         pairs = sorted((i, li) for i, li in dict(logs["local_pairs"]).items() if i not in gone)
         window["to_local"] = np.array(pairs, np.int64).reshape(-1, 2)

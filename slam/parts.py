@@ -27,6 +27,7 @@ from loops.archive import ColdLog
 from loops.closer import joined as loops_joined
 from perception.object_map import joined as objects_joined
 from slam.core import SlamCore
+from slam.records import FrameRecord
 
 COLD = frozenset({"loops.keyframe_features", "kf_points"})
 """Logs needed only on demand: one row per keyframe in a store, never all in RAM."""
@@ -101,23 +102,29 @@ def _poses(rows: Any) -> np.ndarray:
     return np.array(list(rows), float).reshape(-1, 4, 4)
 
 
+def _columns(r: list[FrameRecord]) -> dict[str, np.ndarray]:
+    return {
+        "timestamp": np.array([x.timestamp for x in r]),
+        "seq": np.array([x.seq for x in r], np.int64),
+        "keyframe": np.array([x.keyframe for x in r], np.int64),
+        "is_keyframe": np.array([x.is_keyframe for x in r], bool),
+        "odometry": _poses(x.odometry for x in r),
+        "from_keyframe": _poses(x.from_keyframe for x in r),
+        "posed": np.array([x.posed for x in r], bool),
+    }
+
+
 def assemble(parts: CoreParts, materialize: bool = True) -> dict[str, Any]:
     """``core_state``'s format of ``parts`` (logs live or read back: lists, arrays or dicts). ``materialize``:
-    plain data throughout, the cold logs read whole; else they stay ``ColdLog``s, read on demand."""
+    plain data throughout, the cold logs read whole; else they stay ``ColdLog``s, read on demand, and the frame
+    and factor records stay the records they are (``restore_core`` takes either form), not turned into columns
+    only to be turned back."""
     small, logs = parts.small, parts.logs
     r = list(logs["records"])
     state = {
         **small,
-        "graph": graph_joined(small["graph"], _unprefixed("graph", logs)),
-        "records": {
-            "timestamp": np.array([x.timestamp for x in r]),
-            "seq": np.array([x.seq for x in r], np.int64),
-            "keyframe": np.array([x.keyframe for x in r], np.int64),
-            "is_keyframe": np.array([x.is_keyframe for x in r], bool),
-            "odometry": _poses(x.odometry for x in r),
-            "from_keyframe": _poses(x.from_keyframe for x in r),
-            "posed": np.array([x.posed for x in r], bool),
-        },
+        "graph": graph_joined(small["graph"], _unprefixed("graph", logs), records=not materialize),
+        "records": _columns(r) if materialize else r,
         "kf_odometry": _poses(logs["kf_odometry"]),
         "kf_stamps": np.array(list(logs.get("kf_stamps", [])), float),  # stored since 2026-12-03
         "kf_points": list(logs["kf_points"]) if materialize else ColdLog.of(logs["kf_points"]),

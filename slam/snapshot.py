@@ -55,7 +55,8 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
         if "external" in saved:
             tracking.frontend.restore(saved)
         else:  # saved when the first frame decided the source: that front end's own state
-            odometry = state["records"]["odometry"]
+            records = state["records"]
+            odometry = [x.odometry for x in records[-1:]] if isinstance(records, list) else records["odometry"]
             last = odometry[-1] if len(odometry) else None
             tracking.frontend.restore_single(state["external_odometry"], saved, last)
         if tracking.loops is not None and state["loops"] is not None:
@@ -63,15 +64,7 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
         core.connect(tracking)
         if core.proposer is not None and state.get("proposer") is not None:
             core.proposer.restore(state["proposer"])
-    r = state["records"]
-    rows = zip(
-        r["timestamp"], r["seq"], r["keyframe"], r["is_keyframe"], r["odometry"], r["from_keyframe"], strict=True
-    )
-    posed = r.get("posed", np.ones(len(r["timestamp"]), bool))  # saved before unposed frames: all posed
-    core.records = [
-        FrameRecord(float(t), int(s), int(k), bool(kf), odo, off, bool(p))
-        for (t, s, k, kf, odo, off), p in zip(rows, posed, strict=True)
-    ]
+    core.records = _records(state["records"])
     core.clock.restore(state.get("clock", {}), core.records[-1].timestamp if core.records else None)
     core.kf_odometry = list(state["kf_odometry"])
     core.kf_stamps = _keyframe_stamps(state, core.records)
@@ -102,6 +95,20 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
             jobs["loops"] = Done(_loop_results(results["loops"]))
         core.pending.append(jobs)
     return core
+
+
+def _records(r: dict[str, np.ndarray] | list[FrameRecord]) -> list[FrameRecord]:
+    """The frame records of a state: the records themselves (read back from a map store), or columns."""
+    if isinstance(r, list):
+        return r
+    rows = zip(
+        r["timestamp"], r["seq"], r["keyframe"], r["is_keyframe"], r["odometry"], r["from_keyframe"], strict=True
+    )
+    posed = r.get("posed", np.ones(len(r["timestamp"]), bool))  # saved before unposed frames: all posed
+    return [
+        FrameRecord(float(t), int(s), int(k), bool(kf), odo, off, bool(p))
+        for (t, s, k, kf, odo, off), p in zip(rows, posed, strict=True)
+    ]
 
 
 def _keyframe_stamps(state: dict[str, Any], records: list[FrameRecord]) -> list[float]:
