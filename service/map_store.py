@@ -184,7 +184,7 @@ class MapStore:
             with self.transaction():
                 for at, (sql, params) in enumerate(staged.ops):
                     if isinstance(params[-1], FrozenRows):  # encoded here, on the writer thread
-                        params = (*params[:-1], b"".join(encode(params[-1].rows)))
+                        params = (*params[:-1], params[-1].encoded())
                         staged.ops[at] = (sql, params)
                     if isinstance(params[-1], bytes):
                         params = (*params, hashlib.sha256(params[-1]).digest())

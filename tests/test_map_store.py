@@ -23,7 +23,7 @@ from loops.archive import RESIDENT, ColdLog
 from service.config import load_settings
 from service.map_persistence import Persistence, service_state
 from service.map_store import SCHEMA_VERSION, MapStore, StoreError
-from service.persistence import SnapshotStore, encode
+from service.persistence import SnapshotStore, decode, encode
 from service.store_rows import tail
 from slam.build import build_core
 from slam.parts import COLD, CoreParts, assemble, core_parts
@@ -416,7 +416,7 @@ def test_a_long_chunk_of_frozen_records_is_encoded_by_the_writer_and_reads_back_
     """Rows nothing changes (frozen dataclasses) are encoded when written, not when staged; what reads back is
     what the checkpoint took, and small chunks and other rows are encoded at once."""
     from graph.factors import FactorRecord
-    from service.store_rows import FrozenRows
+    from service.store_rows import PIECE_ROWS, FrozenRows, Pieces
 
     rng = np.random.default_rng(3)
     factors = [FactorRecord(i, i + 1, rng.normal(size=(4, 4)), 0.01, 0.02) for i in range(300)]
@@ -431,6 +431,10 @@ def test_a_long_chunk_of_frozen_records_is_encoded_by_the_writer_and_reads_back_
     assert loaded is not None and len(loaded.logs["factors"]) == 300
     assert all(np.array_equal(a.measurement, b.measurement) for a, b in zip(loaded.logs["factors"], taken, strict=True))
     assert not FrozenRows.admits([replace(factors[0])] * 10) and not FrozenRows.admits(list(range(300)))
+    # encoded piece by piece (the writer thread lets the worker run between pieces), read back as one list
+    (data,) = store.db.execute("SELECT data FROM chunks WHERE log = 'factors'").fetchone()
+    pieces = decode(bytearray(data))
+    assert isinstance(pieces, Pieces) and len(pieces.payloads) == -(-300 // PIECE_ROWS)
 
 
 @given(st.integers(0, 40), st.integers(0, 60), st.one_of(st.none(), st.integers(0, 60)))
