@@ -235,6 +235,7 @@ def _row(
     keyframes = core.graph.num_keyframes
     rss = rss_mb()
     growth = "" if first is None else round((rss - first[1]) * 1024 / max(1, keyframes - first[0]), 1)
+    core.graph.wait_idle()  # a restart follows a stopped service: this one's solver child does not compete with it
     out, restored = _restart_in_subprocess(path, settings.map_sections())
     n = int(out["frames"])
     same = n == frames and bool(np.array_equal(restored[:n], core.trajectory().poses[:n]))
@@ -320,7 +321,9 @@ def _notes(summary: dict[str, float], keyframes: int) -> str:
         "checkpoint (new rows, merges, the small part). "
         "Store: map.db + map.db-wal. RSS: this process (VmRSS); growth since the first row. "
         "Restart: a fresh process opens the store, loads the newest checkpoint and restores a core (imports not "
-        "counted); its RSS after, and above its RSS after the imports; its trajectory against the live core's. "
+        "counted), once the live core's whole-graph solver child has no solve outstanding (as after a stop: "
+        "before 2026-12-04 it could still be solving the whole map on one of the two cores); its RSS after, and "
+        "above its RSS after the imports; its trajectory against the live core's. "
         "Targets (issue 27): checkpoint cost (CPU ms) at 20,000 keyframes <= 1.2 x the cost at 1,000; no stall over "
         "50 ms; "
         "RSS growth after the first 1,000 keyframes <= 20 kB per keyframe; restart at 20,000 keyframes <= 5 s."

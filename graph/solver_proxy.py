@@ -106,6 +106,12 @@ class GlobalSolver:
             self._asked_at[asked] = time.perf_counter()
         self._outbox.put(Solve(asked, exact))
 
+    def wait_idle(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` s until no requested solve is outstanding, leaving its estimate to be taken by
+        ``receive``; whether none is."""
+        with self._arrived:
+            return self._arrived.wait_for(lambda: self._answered >= self._asked or self.dead, timeout=timeout)
+
     def receive(self, wait: float) -> Estimate | None:
         """The newest estimate not taken yet (waiting up to ``wait`` s for the last request's), or None."""
         with self._arrived:

@@ -290,6 +290,11 @@ class WindowedGraph(Keyframes, Landmarks):
         if solved is not None and self._rebuild(self.start, *self._anchored(solved)):
             self.global_solves += 1
 
+    def wait_idle(self, timeout: float = 60.0) -> bool:
+        """Wait until the whole-graph child has no solve outstanding (nothing else changes: its estimate is taken
+        at the next roll as it would have been); whether it has none."""
+        return self._global is None or self._global.wait_idle(timeout)
+
     @property
     def solve_latencies(self) -> list[float]:
         """Seconds from each whole-graph solve request to its estimate's arrival."""

@@ -329,3 +329,13 @@ def test_a_child_that_dies_is_restarted_with_the_whole_history(windowed):
     g.flush()
     assert first.dead and g.child is not first and g.child_starts == 2
     assert np.linalg.norm(g.pose(200)[:3, 3] - true[200][:3, 3]) < 0.05  # the new child solved the whole loop
+
+
+def test_waiting_for_an_idle_child_leaves_its_estimate_for_the_next_roll(windowed):
+    window = windowed(60, 20)
+    _explore(window, 200)
+    assert window.start > 0  # rolled: the child is solving the whole graph
+    assert window.wait_idle(60)
+    child = window._global
+    assert child is not None and not child.outstanding
+    assert child.receive(0.0) is not None  # the estimate the wait saw come back is still there to take
