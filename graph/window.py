@@ -12,7 +12,7 @@ How (the foreground, ``WindowedGraph``):
 - **Rolling**: when the window holds ``window_keyframes + window_step`` keyframes its oldest ``window_step``
   become fixed and the window is rebuilt from the factor records in one batch update. A landmark no window
   keyframe observes leaves the window at its estimate ("frozen"); a factor on it brings it back with its
-  fixed measurements as priors.
+  fixed measurements as priors, fused into one beyond ``FUSE_AT`` (a landmark seen on every lap of a long run).
 - **The whole graph** gets every factor as plain records, in a child process (``graph.solver_proxy`` starts
   ``python -m graph.solver_child``: nothing shared with the parent; ``graph.solver_messages``) running a full
   ``PoseGraph``. It is asked to solve at each roll (one solve outstanding at a time). The newest estimate
@@ -21,9 +21,9 @@ How (the foreground, ``WindowedGraph``):
   ``window_step`` keyframes, whatever the loops. A child that dies is restarted and replays the whole history.
 - **Flush** (the end of a run) waits for the whole graph's batch optimum and re-anchors the window there.
 
-Per-keyframe work is bounded by the window, not by the map; a loop closure's correction of the whole map
-arrives a solve later. Until the first roll the child is never started and the window is the whole graph,
-update for update what ``PoseGraph`` does (same factor indices, same estimate), until a flush.
+Per-keyframe work is bounded by the window, not by the map; a loop closure's correction of the whole map arrives
+a solve later. Until the first roll the child is never started and the window is the whole graph, update for
+update what ``PoseGraph`` does (same factor indices, same estimate), until a flush.
 """
 
 from __future__ import annotations
@@ -43,7 +43,17 @@ from graph.pose_graph import PoseGraph
 from graph.settings import GraphSettings, with_window
 from graph.solver_messages import Replay, Update
 from graph.solver_proxy import GlobalSolver
-from graph.window_factors import Estimate, FactorIndex, anchored, landmarks_of, localize, window_factors
+from graph.window_factors import (
+    Estimate,
+    FactorIndex,
+    Localized,
+    anchored,
+    fused_owners,
+    landmarks_of,
+    localize,
+    localized_factors,
+    window_factors,
+)
 from graph.window_state import joined, window_parts
 
 log = logging.getLogger(__name__)
@@ -68,6 +78,7 @@ class WindowedGraph(Keyframes, Landmarks):
         self.start = 0  # first keyframe in the window; the ones before are fixed
         self._to_local: dict[int, int] = {}  # factor index -> the window's factor index
         self._local_pairs: list[tuple[int, int]] = []  # the same, as added (a log: removals are the books')
+        self._fused: dict[int, list[int]] = {}  # a window factor standing for several (``localized_factors``)
         self._index = FactorIndex()  # the factors on each keyframe and landmark
         self._fixed = np.zeros((0, 4, 4))  # keyframes before ``start``
         self._frozen: dict[int, np.ndarray] = {}  # landmarks in the graph but not in the window
@@ -140,29 +151,28 @@ class WindowedGraph(Keyframes, Landmarks):
         """One update of the window (factors in global ids), recorded and passed on to the whole graph."""
         remove = list(remove or [])
         first, new = len(self.books.factors), {j for j, _ in landmarks}
-        local, owners, revived = [], [], []
+        local, revived = Localized(), []
         local_landmarks = {j: p for j, p in landmarks}
         for j in landmarks_of(factors) - new - self.local.landmarks_in_solver():
             if j in self._frozen:  # back into the window, its measurements from fixed keyframes as priors
-                for i in self._index.on_landmark(j):
-                    if i not in self.books.removed and (r := self.localize(self.books.factors[i], {j})) is not None:
-                        local.append(r)
-                        owners.append(i)
+                live = [i for i in self._index.on_landmark(j) if i not in self.books.removed]
+                self._extend(local, live, {j: self._frozen[j]})
                 local_landmarks[j] = self._frozen[j]
                 revived.append(j)
         keep = self.local.landmarks_in_solver() | new | set(revived)
         for i, f in enumerate(factors, start=first):
             r = self.localize(f, keep)
             if r is not None:
-                local.append(r)
-                owners.append(i)
-        local_remove = [self._to_local[i] for i in remove if i in self._to_local]
+                local.add(r, [i])
+        local_remove = sorted({self._to_local[i] for i in remove if i in self._to_local})
+        for li in local_remove:  # a fused prior goes whole; what is left of it comes back
+            if rest := [i for i in self._fused.pop(li, []) if i not in set(remove)]:
+                j = int(self.books.factors[rest[0]].b)  # type: ignore[arg-type]  # a landmark measurement's
+                self._extend(local, rest, {j: self.local.landmark(j)})
         result = self.local.update(
-            local, [np.asarray(p, float) for p in poses], list(local_landmarks.items()), local_remove
+            local.factors, [np.asarray(p, float) for p in poses], list(local_landmarks.items()), local_remove
         )
-        for i, li in zip(owners, result.factor_indices, strict=True):
-            self._to_local[i] = li
-            self._local_pairs.append((i, li))
+        self._own(local.owners, result.factor_indices)
         for i in remove:
             self._to_local.pop(i, None)
         for j in revived:
@@ -175,6 +185,21 @@ class WindowedGraph(Keyframes, Landmarks):
         if self.num_keyframes - self.start >= self.settings.window_keyframes + self.settings.window_step:
             self._roll()
         return UpdateResult(tuple(range(first, first + len(factors))))
+
+    def _extend(self, local: Localized, indices: list[int], landmarks: dict[int, np.ndarray]) -> None:
+        """Append the window's factors for ``indices`` on ``landmarks`` and their owners (``localized_factors``)."""
+        factors = self.books.factors
+        given = ((i, factors[i], r) for i in indices if (r := self.localize(factors[i], set(landmarks))) is not None)
+        localized_factors(given, landmarks, local)
+
+    def _own(self, owners: list[list[int]], indices: Sequence[int]) -> None:
+        """Window factors ``indices`` added for the whole-graph ``owners`` of each."""
+        for members, li in zip(owners, indices, strict=True):
+            for i in members:
+                self._to_local[i] = li
+                self._local_pairs.append((i, li))
+            if len(members) > 1:
+                self._fused[li] = members
 
     def _record(
         self,
@@ -242,28 +267,25 @@ class WindowedGraph(Keyframes, Landmarks):
     def _rebuild(self, start: int, estimate: np.ndarray, landmarks: dict[int, np.ndarray]) -> bool:
         """A new window from ``start`` at the given estimate: one batch update of its keyframes and landmarks.
         False (and the window as it was) if iSAM2 rejects it."""
-        old = self.start, self._fixed, self.local, self._to_local, self._frozen, self._local_pairs
+        old = self.start, self._fixed, self.local, self._to_local, self._frozen, self._local_pairs, self._fused
         self.start, self._fixed = start, estimate[:start].copy()
         books = self.books
         indices, kept = window_factors(
             self._index, books.factors, books.removed, books.landmarks.keys(), start, self.num_keyframes
         )
-        local, owners = [], []
-        for i in indices:
-            if (r := self.localize(books.factors[i], kept)) is not None:
-                local.append(r)
-                owners.append(i)
+        local = Localized()
+        self._extend(local, indices, {j: landmarks[j] for j in kept})
         graph = PoseGraph(self.settings, self.local.factorization)
         graph.timings = self.timings
         try:
-            result = graph.update(local, list(estimate[start:]), [(j, landmarks[j]) for j in sorted(kept)])
+            result = graph.update(local.factors, list(estimate[start:]), [(j, landmarks[j]) for j in sorted(kept)])
         except SolverError as exc:
             log.error("rebuilding the iSAM2 window failed, keeping the previous one: %s", exc)
-            self.start, self._fixed, self.local, self._to_local, self._frozen, self._local_pairs = old
+            self.start, self._fixed, self.local, self._to_local, self._frozen, self._local_pairs, self._fused = old
             return False
         self.local, self.rebuilt = graph, True
-        self._to_local = dict(zip(owners, result.factor_indices, strict=True))
-        self._local_pairs = list(self._to_local.items())
+        self._to_local, self._fused, self._local_pairs = {}, {}, []
+        self._own(local.owners, result.factor_indices)
         self._frozen = {j: np.asarray(landmarks[j], float) for j in books.landmarks.keys() - kept}
         return True
 
@@ -291,8 +313,7 @@ class WindowedGraph(Keyframes, Landmarks):
             self.global_solves += 1
 
     def wait_idle(self, timeout: float = 60.0) -> bool:
-        """Wait until the whole-graph child has no solve outstanding (nothing else changes: its estimate is taken
-        at the next roll as it would have been); whether it has none."""
+        """Wait until the whole-graph child has no solve outstanding (its estimate left for the next roll)."""
         return self._global is None or self._global.wait_idle(timeout)
 
     @property
@@ -370,6 +391,7 @@ class WindowedGraph(Keyframes, Landmarks):
         }
         graph._to_local = {int(i): int(li) for i, li in saved["to_local"]}
         graph._local_pairs = list(graph._to_local.items())
+        graph._fused = fused_owners(graph._to_local)
         if graph.start:
             graph._running_child()
         return graph

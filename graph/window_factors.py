@@ -12,7 +12,7 @@ viewing ray).
 from __future__ import annotations
 
 from collections.abc import Collection, Iterable, Sequence, Set
-from dataclasses import replace
+from dataclasses import dataclass, field, replace
 
 import gtsam
 import numpy as np
@@ -133,3 +133,73 @@ def anchored(
     merged = {j: correction[:3, :3] @ p + correction[:3, 3] for j, p in landmarks.items()}
     merged.update({j: p for j, p in solved_landmarks.items() if j in in_solver})
     return moved, merged
+
+
+FUSE_AT = 8
+"""World priors on one landmark (its measurements from fixed keyframes) beyond this many are fused into one: a
+landmark seen from every lap of a long run had thousands, rebuilt into the window at every roll."""
+
+
+def is_world_prior(f: FactorRecord, local: FactorRecord) -> bool:
+    """Whether ``local`` (``localize`` of ``f``) is a landmark measurement from a fixed keyframe as a prior."""
+    return local.kind == FactorKind.LANDMARK and local.b is None and f.b is not None
+
+
+def fused_prior(priors: Sequence[FactorRecord], at: np.ndarray) -> FactorRecord:
+    """One world prior on a landmark that stands for ``priors`` (world-position priors on it, each robust or not)
+    around ``at``: their information summed, each weighted as iteratively reweighted least squares weighs a
+    Huber kernel at ``at`` (1 within ``huber_k`` whitened units, ``huber_k`` / error beyond). Gaussian priors
+    fuse exactly; robust ones as their sum looks around ``at``, so the window keeps down what the whole graph's
+    solve, with every measurement, would weigh down."""
+    information, eta = np.zeros((3, 3)), np.zeros(3)
+    for f in priors:
+        covariance = f.covariance if f.covariance is not None else f.sigma_m**2 * np.eye(3)
+        info = np.linalg.inv(covariance)
+        r = np.asarray(f.measurement, float) - at
+        error = float(np.sqrt(r @ info @ r))
+        w = 1.0 if f.huber_k is None or error <= f.huber_k else f.huber_k / error
+        information += w * info
+        eta += w * info @ f.measurement
+    covariance = np.linalg.inv(information)
+    first = priors[0]
+    return FactorRecord(first.a, None, covariance @ eta, first.sigma_m, 0.0, None, FactorKind.LANDMARK, covariance)
+
+
+@dataclass
+class Localized:
+    """Factors for the window, and the whole-graph factors (indices) each one stands for."""
+
+    factors: list[FactorRecord] = field(default_factory=list)
+    owners: list[list[int]] = field(default_factory=list)
+
+    def add(self, factor: FactorRecord, owners: list[int]) -> None:
+        self.factors.append(factor)
+        self.owners.append(owners)
+
+
+def localized_factors(
+    factors: Iterable[tuple[int, FactorRecord, FactorRecord]], landmarks: dict[int, np.ndarray], into: Localized
+) -> None:
+    """Add to ``into`` the window's factors for ``factors`` (index, whole-graph factor, its ``localize``d form)
+    in order: a landmark's world priors beyond ``FUSE_AT`` fused into one (``fused_prior`` around its estimate in
+    ``landmarks``), where its first one was."""
+    given = list(factors)
+    groups: dict[int, list[int]] = {}
+    for n, (_, f, r) in enumerate(given):
+        if is_world_prior(f, r):
+            groups.setdefault(r.a, []).append(n)
+    fused = {members[0]: members for members in groups.values() if len(members) > FUSE_AT}
+    skip = {n for members in fused.values() for n in members[1:]}
+    for n, (i, _, r) in enumerate(given):
+        if n in fused:
+            into.add(fused_prior([given[m][2] for m in fused[n]], landmarks[r.a]), [given[m][0] for m in fused[n]])
+        elif n not in skip:
+            into.add(r, [i])
+
+
+def fused_owners(to_local: dict[int, int]) -> dict[int, list[int]]:
+    """The window factors that stand for several whole-graph factors, with those (of whole -> window index)."""
+    owners: dict[int, list[int]] = {}
+    for i, li in to_local.items():
+        owners.setdefault(li, []).append(i)
+    return {li: members for li, members in owners.items() if len(members) > 1}

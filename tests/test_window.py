@@ -6,6 +6,7 @@ from __future__ import annotations
 import os
 import signal
 from collections import defaultdict
+from dataclasses import replace
 from itertools import pairwise
 
 import gtsam
@@ -22,6 +23,7 @@ from graph.interface import Graph
 from graph.pose_graph import PoseGraph
 from graph.settings import GraphSettings
 from graph.window import WindowedGraph
+from graph.window_factors import FUSE_AT, fused_prior
 from service.config import load_settings
 from service.node import ServiceNode
 from service.persistence import decode, encode, seal, unseal
@@ -339,3 +341,67 @@ def test_waiting_for_an_idle_child_leaves_its_estimate_for_the_next_roll(windowe
     child = window._global
     assert child is not None and not child.outstanding
     assert child.receive(0.0) is not None  # the estimate the wait saw come back is still there to take
+
+
+def test_world_priors_fuse_into_one_with_their_information_summed_and_outliers_weighed_down():
+    rng = np.random.default_rng(5)
+    truth = np.array([1.0, -0.5, 2.0])
+    priors = []
+    for _ in range(12):
+        a = rng.normal(size=(3, 3))
+        covariance = 0.01 * (a @ a.T + np.eye(3))
+        priors.append(
+            FactorRecord(
+                7, None, rng.multivariate_normal(truth, covariance), 0.1, 0.0, None, FactorKind.LANDMARK, covariance
+            )
+        )
+    fused = fused_prior(priors, truth)
+    information = sum(np.linalg.inv(f.covariance) for f in priors)
+    mean = np.linalg.solve(information, sum(np.linalg.inv(f.covariance) @ f.measurement for f in priors))
+    np.testing.assert_allclose(np.linalg.inv(fused.covariance), information, rtol=1e-9)
+    np.testing.assert_allclose(fused.measurement, mean, atol=1e-12)
+    assert fused.a == 7 and fused.b is None and fused.huber_k is None
+    # the same priors robust, with one 2 m off: the fused prior stays with the others
+    robust = [replace(f, huber_k=1.345) for f in priors]
+    outlier = replace(robust[0], measurement=truth + np.array([2.0, 0.0, 0.0]))
+    plain = fused_prior([*priors[1:], replace(outlier, huber_k=None)], truth)
+    kept = fused_prior([*robust[1:], outlier], truth)
+    assert np.linalg.norm(kept.measurement - truth) < 0.3 * np.linalg.norm(plain.measurement - truth)
+
+
+def test_a_landmark_seen_from_many_fixed_keyframes_is_one_prior_in_the_window_and_follows_retractions(windowed):
+    """A landmark measured from every keyframe of a lap: once those are fixed, the window holds one fused prior
+    for them; measurements retracted later leave the window where the whole graph without them is."""
+    true, drift = _circle()
+    p = np.array([0.0, 0.0, 1.0])
+    g, full = windowed(40, 10), PoseGraph()
+    measured: list[tuple[int, int]] = []  # (keyframe, factor index) in both graphs
+    for graph in (g, full):
+        graph.add_landmark(4)
+        graph.add_first(true[0])
+    for k, (a, b) in enumerate(pairwise(true[:121]), start=1):
+        for graph in (g, full):
+            graph.add_keyframe(relative(a, b) @ drift, 0.01, 0.5)
+        seen = _seen_from(b, p)
+        (i,) = g.add_landmark_measurements([(k, 4, seen)], 0.05, 1.345, 0.15)
+        (i_full,) = full.add_landmark_measurements([(k, 4, seen)], 0.05, 1.345, 0.15)
+        assert i == i_full
+        measured.append((k, i))
+    assert g.start >= 70 and 4 in g.local.landmarks_in_solver()
+    fused = [members for members in g._fused.values() if len(members) > FUSE_AT]
+    assert len(fused) == 1 and len(fused[0]) == g.start - 1  # every fixed keyframe's measurement, in one prior
+    gone = [i for k, i in measured[5:60:3]]  # retract some of them (a track moved to another object)
+    for graph in (g, full):
+        graph.remove_factors(gone)
+    assert not set(gone) & set(g._to_local)
+    assert [len(m) for m in g._fused.values()] == [g.start - 1 - len(gone)]  # the rest fused again
+    assert np.linalg.norm(g.landmark(4) - full.landmark(4)) < 0.01  # before any flush: the window's own solve
+    g.flush()
+    optimum = _optimum(full)
+    np.testing.assert_allclose(g.poses()[:, :3, 3], optimum[:, :3, 3], atol=1e-3)
+    np.testing.assert_allclose(g.landmark(4), full.optimum()[1][4], atol=1e-3)
+
+
+def _seen_from(T: np.ndarray, p: np.ndarray) -> np.ndarray:
+    Ti = np.linalg.inv(T)
+    return Ti[:3, :3] @ p + Ti[:3, 3]
