@@ -48,6 +48,18 @@ def motion_magnitude(T_rel: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(T_rel[:3, 3])), rotation_angle(T_rel[:3, :3])
 
 
+def disagreements(T_a: np.ndarray, T_b: np.ndarray, T_ab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``motion_magnitude(relative(relative(T_a, T_b), T_ab))`` of many (n, 4, 4) stacks at once: how far each
+    measured ``T_ab`` is from the relative pose of ``T_a`` and ``T_b``, in m and rad."""
+    Ra, Rb, Rm = T_a[:, :3, :3], T_b[:, :3, :3], T_ab[:, :3, :3]
+    R = np.swapaxes(Ra, 1, 2) @ Rb  # the estimate T_a^-1 T_b
+    t = np.einsum("nji,nj->ni", Ra, T_b[:, :3, 3] - T_a[:, :3, 3])
+    Re = np.swapaxes(R, 1, 2) @ Rm  # its inverse times the measurement
+    te = np.einsum("nji,nj->ni", R, T_ab[:, :3, 3] - t)
+    c = (np.trace(Re, axis1=1, axis2=2) - 1.0) / 2.0
+    return np.linalg.norm(te, axis=1), np.arccos(np.clip(c, -1.0, 1.0))
+
+
 def is_rigid(T: np.ndarray, tol: float = 1e-3) -> bool:
     """True when T is a finite 4x4 rigid transform (orthonormal rotation, det +1, last row 0 0 0 1)."""
     T = np.asarray(T)

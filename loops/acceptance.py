@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from graph.geometry import motion_magnitude, relative
+from graph.geometry import disagreements, motion_magnitude, relative
 from graph.interface import Graph
 from loops.records import LoopRecord, Verified
 from loops.settings import LoopSettings
@@ -88,12 +88,15 @@ class LoopAcceptance:
 
     def recheck(self) -> list[int]:
         """Retract accepted loops that disagree with the estimate the other loops now give; their factors."""
-        s, bad = self.settings, []
-        for factor, loop in self.accepted.items():
-            estimate = relative(self.graph.pose(loop.a), self.graph.pose(loop.b))
-            dt, dr = motion_magnitude(relative(estimate, loop.T_a_b))
-            if dt > s.retract_m or math.degrees(dr) > s.retract_deg:
-                bad.append(factor)
+        s = self.settings
+        if not self.accepted:
+            return []
+        loops = list(self.accepted.values())  # all at once: thousands of loops in a long run's map
+        poses = self.graph.poses()
+        a, b = np.array([x.a for x in loops]), np.array([x.b for x in loops])
+        dt, dr = disagreements(poses[a], poses[b], np.stack([x.T_a_b for x in loops]))
+        off = (dt > s.retract_m) | (np.degrees(dr) > s.retract_deg)
+        bad = [factor for factor, o in zip(self.accepted, off, strict=True) if o]
         if not bad:
             return []
         self.graph.remove_factors(bad)
