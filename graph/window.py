@@ -164,9 +164,9 @@ class WindowedGraph(Keyframes, Landmarks):
             r = self.localize(f, keep)
             if r is not None:
                 local.add(r, [i])
-        local_remove = sorted({self._to_local[i] for i in remove if i in self._to_local})
+        local_remove, gone = sorted({self._to_local[i] for i in remove if i in self._to_local}), set(remove)
         for li in local_remove:  # a fused prior goes whole; what is left of it comes back
-            if rest := [i for i in self._fused.pop(li, []) if i not in set(remove)]:
+            if rest := [i for i in self._fused.pop(li, []) if i not in gone]:
                 j = int(self.books.factors[rest[0]].b)  # type: ignore[arg-type]  # a landmark measurement's
                 self._extend(local, rest, {j: self.local.landmark(j)})
         result = self.local.update(
@@ -188,8 +188,8 @@ class WindowedGraph(Keyframes, Landmarks):
 
     def _extend(self, local: Localized, indices: list[int], landmarks: dict[int, np.ndarray]) -> None:
         """Append the window's factors for ``indices`` on ``landmarks`` and their owners (``localized_factors``)."""
-        factors = self.books.factors
-        given = ((i, factors[i], r) for i in indices if (r := self.localize(factors[i], set(landmarks))) is not None)
+        factors, kept = self.books.factors, set(landmarks)
+        given = ((i, factors[i], r) for i in indices if (r := self.localize(factors[i], kept)) is not None)
         localized_factors(given, landmarks, local)
 
     def _own(self, owners: list[list[int]], indices: Sequence[int]) -> None:
