@@ -105,6 +105,7 @@ class ObjectMapper:
         keyframe's camera-to-world pose (``repose`` updates it); the newest ``MAX_FLOOR_VIEWS``."""
         self._floor: Floor | None = None
         self._floor_stale = False
+        self._floor_saved: dict[str, np.ndarray] | None = None  # ``_floor_columns`` of the views, until they change
         self.clusterer.locate = self._locate
         self._obs_local: list[FeatureVector] = []
         self._obs_cut: list[tuple[bool, bool]] = []
@@ -148,7 +149,7 @@ class ObjectMapper:
             self._floor_views[index] = (plane, np.array(pose, float))
             while len(self._floor_views) > MAX_FLOOR_VIEWS:
                 del self._floor_views[next(iter(self._floor_views))]
-            self._floor_stale = True
+            self._floor_stale, self._floor_saved = True, None
         self.last_observations = [
             (t, f.mean, float(np.sqrt(np.linalg.eigvalsh(f.cov)[-1])))
             for f, t, inside in zip(local, ids, whole, strict=True)
@@ -240,7 +241,7 @@ class ObjectMapper:
             self._prev.pose = np.asarray(poses[self._prev.index])
         for k, (plane, pose) in list(self._floor_views.items()):
             self._floor_views[k] = (plane, np.array(poses[k], float) if _has(poses, k) else pose)
-        self._floor_stale = True
+        self._floor_stale, self._floor_saved = True, None
         return self.clusterer.recluster()
 
     def state(self) -> dict:
@@ -263,7 +264,7 @@ class ObjectMapper:
             "clusterer": clusterer,
             "prev": prev,
             "associations": self.associations,
-            "floor_views": _floor_columns(self._floor_views),
+            "floor_views": self._floor_saved or self._saved_floor(),
         }
         logs = {
             "observations.keyframe": self._obs_keyframe,
@@ -272,6 +273,10 @@ class ObjectMapper:
             "clusterer.features": self.clusterer.features,
         }
         return small, logs
+
+    def _saved_floor(self) -> dict[str, np.ndarray]:
+        self._floor_saved = _floor_columns(self._floor_views)
+        return self._floor_saved
 
     def restore(self, state: dict) -> None:
         self.tracker.restore(state["tracker"])
@@ -284,7 +289,7 @@ class ObjectMapper:
         self._obs_cut = [(bool(t), bool(b)) for t, b in cut]
         self.clusterer.keyframe_of = self._obs_keyframe
         self._floor_views = _floor_rows(state.get("floor_views", {}))  # none in snapshots of earlier versions
-        self._floor_stale = True
+        self._floor_stale, self._floor_saved = True, None
 
     def finish(self) -> list[ObjectEllipsoid]:
         """End of sequence: emit every open track window and re-cluster once more."""

@@ -161,7 +161,7 @@ class MapStore:
         """A checkpoint encoded: the new rows of the live ``logs`` and ``small`` as bytes, to be written by
         ``write`` (on any thread: nothing it holds is live). Call it where the logs do not change meanwhile;
         stage the next one only after the last one's ``write`` returned or raised."""
-        before = {n: replace(s, chunks=None if s.chunks is None else list(s.chunks)) for n, s in self.logs.items()}
+        before = dict(self.logs)  # the states themselves: ``_stage_log`` changes a copy of the ones it writes to
         staged = Staged(keyframes, frames, before)
         try:
             lengths = {name: self._stage_log(staged, name, rows) for name, rows in logs.items()}
@@ -222,6 +222,8 @@ class MapStore:
                 self._replaced.add((name, state.generation))
             generation = 0 if state is None else self._next_generation(name, state.generation)
             state = self.logs[name] = LogState(generation, 0, kind)
+        elif n > state.written or state.owner is not held:
+            state = self.logs[name] = replace(state, chunks=None if state.chunks is None else list(state.chunks))
         state.owner = held
         if n > state.written:
             if name in self.cold:

@@ -41,7 +41,7 @@ from rl.proposer import PolicyProposer
 from slam import relocalization, stages
 from slam.clock import StreamClock
 from slam.map_views import MapViews
-from slam.pose_log import PoseLog
+from slam.pose_log import PlacedPoses
 from slam.records import FrameRecord, KeyframeLoops, KeyframeObjects, StepResult
 from slam.repose import repose_due
 from slam.runner import Done, Handle, InlineRunner, Lane, Runner, idle
@@ -110,7 +110,7 @@ class SlamCore(MapViews):
         self.kf_points: ColdLog[np.ndarray] = ColdLog()  # sparse depth samples per keyframe, camera frame, float32
         self.pending: deque[dict[str, Handle]] = deque()  # per keyframe, oldest first: its unapplied stages
         self.objects_view: list = []  # the objects as of the last applied mapping (read by object_list)
-        self.object_poses = PoseLog()  # per keyframe: the pose its object observations were placed with
+        self.object_poses = PlacedPoses()  # per keyframe: the pose its object observations were placed with
         self.keyframe_detections: dict[int, list[Detection]] = {}
         self.detections_by_class: Counter[str] = Counter()
         self.timings: dict[str, float] = {}
@@ -395,6 +395,6 @@ class SlamCore(MapViews):
             return None
         poses = repose_due(self.graph, self.object_poses, self.settings.objects)
         if poses is not None:
-            self.object_poses = PoseLog(poses)
+            self.object_poses.revise(poses)
             self.reposes += 1
         return poses

@@ -27,6 +27,7 @@ from loops.archive import ColdLog
 from loops.closer import joined as loops_joined
 from perception.object_map import joined as objects_joined
 from slam.core import SlamCore
+from slam.pose_log import REVISION
 from slam.records import FrameRecord
 
 COLD = frozenset({"loops.keyframe_features", "kf_points"})
@@ -77,7 +78,7 @@ def core_parts(core: SlamCore) -> CoreParts:
         "kf_stamps": core.kf_stamps,
         "kf_points": core.kf_points,
         "keyframe_detections": core.keyframe_detections,
-        "object_poses": core.object_poses.rows(),
+        "object_pose_revisions": core.object_poses.revisions(),
         "segments.keyframe_segment": core.segments.keyframe_segment,
         **_prefixed("graph", graph_logs),
     }
@@ -130,8 +131,11 @@ def assemble(parts: CoreParts, materialize: bool = True) -> dict[str, Any]:
         "kf_points": list(logs["kf_points"]) if materialize else ColdLog.of(logs["kf_points"]),
         "segments": {**small["segments"], "keyframe_segment": list(logs["segments.keyframe_segment"])},
         "keyframe_detections": dict(logs["keyframe_detections"]),
-        "object_poses": _poses(logs["object_poses"]),
     }
+    if "object_pose_revisions" in logs:  # stored since 2026-12-04 (before: the poses, written whole)
+        state["object_pose_revisions"] = np.asarray(logs["object_pose_revisions"], float).reshape(-1, REVISION)
+    else:
+        state["object_poses"] = _poses(logs["object_poses"])
     if small["objects"] is not None:
         state["objects"] = objects_joined(small["objects"], _unprefixed("objects", logs))
     if small["landmarks"] is not None:

@@ -8,11 +8,13 @@ import numpy as np
 
 from graph.geometry import rotation_angles_between
 from graph.interface import Graph
-from slam.pose_log import PoseLog
+from slam.pose_log import PlacedPoses
 from slam.settings import ObjectSettings
 
 
-def repose_due(graph: Graph, object_poses: Sequence[np.ndarray] | PoseLog, cfg: ObjectSettings) -> np.ndarray | None:
+def repose_due(
+    graph: Graph, object_poses: Sequence[np.ndarray] | PlacedPoses, cfg: ObjectSettings
+) -> np.ndarray | None:
     """Sec. 2.4.7: after an optimisation the feature vectors are recomputed from the updated poses and the
     objects re-clustered. Due when a keyframe holding object observations (placed with ``object_poses``) has
     moved more than ``repose_m`` or turned more than ``repose_deg`` since (smaller corrections are below the

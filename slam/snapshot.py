@@ -18,7 +18,7 @@ from loops.records import LoopRecord, Verified
 from slam.build import build_core
 from slam.core import SlamCore
 from slam.parts import assemble, core_parts
-from slam.pose_log import PoseLog
+from slam.pose_log import PlacedPoses
 from slam.records import FrameRecord, KeyframeLoops
 from slam.runner import Done, Handle, Runner
 from slam.segments import Segments, TrackingState
@@ -84,7 +84,10 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
     core.object_map_version = state["object_map_version"]
     if core.landmarks is not None and state.get("landmarks") is not None:
         core.landmarks.restore(state["landmarks"])
-    core.object_poses = PoseLog(state.get("object_poses", graph.poses()[: len(core.keyframe_detections)]))
+    if "object_pose_revisions" in state:
+        core.object_poses = PlacedPoses(revisions=state["object_pose_revisions"])
+    else:  # saved before 2026-12-04 (the poses), or before the poses were saved
+        core.object_poses = PlacedPoses(state.get("object_poses", graph.poses()[: len(core.keyframe_detections)]))
     core.reposes = state.get("reposes", 0)
     core.mapping_errors = state.get("mapping_errors", 0)
     if core.objects is not None:

@@ -27,6 +27,7 @@ from service.persistence import SnapshotStore, decode, encode
 from service.store_rows import tail
 from slam.build import build_core
 from slam.parts import COLD, CoreParts, assemble, core_parts
+from slam.pose_log import PlacedPoses, replayed
 from slam.snapshot import core_state, restore_core
 from sources import open_dataset
 from sources.base import truth_per_frame
@@ -444,3 +445,52 @@ def test_the_rows_of_a_dict_log_are_its_items_in_order_whichever_end_they_are_ta
     got = tail(rows, start, stop)
     assert [k for k, _ in got] == [k for k, _ in expected] and len(got) == len(expected)
     assert all(a is b for (_, a), (_, b) in zip(got, expected, strict=True))
+
+
+@given(st.lists(st.tuples(st.integers(0, 3), st.floats(0, 1)), max_size=40), st.integers(0, 2**31))
+def test_placed_poses_log_only_their_revisions_and_replay_to_the_poses(steps, seed):
+    """Appends and revisions of a few or of most poses: the revision log replays to the poses, its rows beyond
+    the poses are the poses that changed, and it stays within twice the poses (plus a margin)."""
+    rng = np.random.default_rng(seed)
+    placed = PlacedPoses()
+    for appended, share in steps:
+        for _ in range(appended):
+            placed.append(rng.normal(size=(4, 4)))
+        poses = placed.rows().copy()
+        changed = rng.random(len(poses)) < share
+        poses[changed] += 1.0
+        before = placed.revisions().copy()
+        placed.revise(poses)
+        assert np.array_equal(placed.rows(), poses)
+        log, c = placed.revisions(), int(changed.sum())
+        if 2 * c <= len(poses) and len(before) + c <= 2 * len(poses) + 64:  # the changed poses appended
+            assert np.array_equal(log[: len(before)], before) and len(log) == len(before) + c
+            assert np.array_equal(log[len(before) :, 0], np.flatnonzero(changed))
+        else:  # begun again from the poses
+            assert np.array_equal(log[:, 0], np.arange(len(poses)))
+        assert len(log) <= 2 * len(poses) + 64
+        assert np.array_equal(replayed(log), poses)
+        assert np.array_equal(PlacedPoses(revisions=log).rows(), poses)
+    with pytest.raises(ValueError):
+        placed.revise(np.zeros((len(placed) + 1, 4, 4)))
+
+
+def test_a_store_with_object_poses_written_whole_still_restores_them(tmp_path, frames):
+    """Stores written before 2026-12-04 hold ``object_poses`` (every pose at every re-placement); they read back
+    into the same poses, and the next checkpoint logs revisions."""
+    core, store = _checkpointed(frames, tmp_path / "map.db", 80)
+    assert core.reposes > 0 and len(core.object_poses) > 0
+    parts = core_parts(core)
+    logs = dict(parts.logs)
+    del logs["object_pose_revisions"]
+    logs["object_poses"] = core.object_poses.rows()
+    store.checkpoint(parts.small, logs, core.graph.num_keyframes, 80)
+    store.close()
+    reader = MapStore(tmp_path / "map.db", "robot1", COLD)
+    loaded = reader.load()
+    assert loaded is not None and "object_pose_revisions" not in loaded.logs
+    restored = restore_core(load_settings(), assemble(CoreParts(loaded.small, loaded.logs), materialize=False))
+    assert np.array_equal(restored.object_poses.rows(), core.object_poses.rows())
+    again = core_parts(restored)
+    reader.checkpoint(again.small, again.logs, core.graph.num_keyframes, 80)
+    assert reader.logs["object_pose_revisions"].written == len(core.object_poses)
