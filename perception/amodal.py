@@ -9,12 +9,15 @@ vertically by its points' span down to the surface it stands on (``vertical_exte
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.ndimage import distance_transform_edt, uniform_filter
 
 from perception.camera import Intrinsics, pixels_to_points
 from perception.features import (
     Box,
+    DepthSegment,
     FeatureConfig,
     FeatureVector,
     depth_points,
@@ -175,10 +178,13 @@ def detection_feature(
     track_id: int,
     config: FeatureConfig,
     up: np.ndarray | None = None,
+    occluders: Sequence[DepthSegment] = (),
 ) -> FeatureVector | None:
     """The camera-frame feature vector of a detection (amodally completed when configured, its near and far sides
-    on locally averaged depth: ``FeatureConfig.near_radius``); None when too few points."""
-    rows, cols, support = split_support(depth_m, K, box, *object_pixels(depth_m, box, config), config)
+    on locally averaged depth: ``FeatureConfig.near_radius``), its pixels without those of the other detections
+    in front of it (``occluders``: ``features.in_front``); None when too few points."""
+    pixels = object_pixels(depth_m, box, config, occluders)
+    rows, cols, support = split_support(depth_m, K, box, *pixels, config)
     idx = stride_subsample(len(rows), config.max_points)
     points = depth_points(depth_m, K, rows[idx], cols[idx])
     if config.amodal is None or len(points) < 3:

@@ -14,6 +14,7 @@ from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid, rob
 from perception.features import (
     FeatureConfig,
     FeatureVector,
+    depth_segment,
     merge_features,
     transform_feature,
 )
@@ -135,11 +136,15 @@ class ObjectMapper:
         whole = [not any(cut_by_border(d.box, w, h)) for d in detections]
         plane = level_plane(depth_m, K, self.floor_config)
         up = self._camera_up(pose, plane)
+        segments = [depth_segment(depth_m, d.box, self.features)[2] for d in detections]
+        occluders = [[s for s in segments if s is not None and s is not mine] for mine in segments]
         local = [
             _weighed(
-                detection_feature(depth_m, K, d.box, d.label, t, self.features, up), inside, self.features.cut_weight
+                detection_feature(depth_m, K, d.box, d.label, t, self.features, up, others),
+                inside,
+                self.features.cut_weight,
             )
-            for d, t, inside in zip(detections, ids, whole, strict=True)
+            for d, t, inside, others in zip(detections, ids, whole, occluders, strict=True)
         ]
         obs = [
             None if f is None else transform_feature(self._store(index, f, cut_vertically(d.box, h)), pose)

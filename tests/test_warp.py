@@ -14,8 +14,10 @@ from perception.camera import Intrinsics
 from perception.features import (
     FeatureConfig,
     backproject_detection,
+    depth_segment,
     dominant_depth_mask,
     feature_from_points,
+    in_front,
     object_points,
     support_plane,
 )
@@ -180,3 +182,56 @@ def test_the_floor_an_object_stands_on_is_dropped_from_its_pixels() -> None:
     wall = np.full((60, 80), 2.05, np.float32)
     wall[20:40, 30:50] = 2.0
     assert support_plane(wall, K, (30.0, 20.0, 50.0, 40.0), 45.0) is None
+
+
+def test_a_box_behind_another_detection_leaves_out_its_pixels_and_keeps_its_own_centre() -> None:
+    """Two 0.46 m faces in a row seen at a slant: the near one (2.0 m) and its side cover the left part of the far
+    one's box (2.3 m), the side's depths joining the two. Taking the near one's pixels put the far one's near
+    side, and its completed centre, 0.26 m too near; without them its centre is within the few cm its hidden
+    part costs, and the near one, in front, keeps all of its own."""
+    alone = _plane_depth(4.0)
+    alone[20:40, 30:50] = 2.3  # the far face alone: 20 px at fx 100 = 0.46 m at 2.3 m
+    depth = alone.copy()
+    depth[22:42, 12:32] = 2.0  # the near face
+    depth[22:42, 32:38] = np.linspace(2.04, 2.26, 6)[None, :]  # its side, receding to the far face's depth
+    far_box, near_box = (30.0, 20.0, 50.0, 42.0), (12.0, 22.0, 38.0, 42.0)
+    cfg = FeatureConfig()
+    near_segment, far_segment = (depth_segment(depth, b, cfg)[2] for b in (near_box, far_box))
+    assert near_segment is not None and far_segment is not None
+    reference = detection_feature(alone, K, (30.0, 20.0, 50.0, 40.0), "chair", 1, cfg)
+    mixed = detection_feature(depth, K, far_box, "chair", 1, cfg)
+    clean = detection_feature(depth, K, far_box, "chair", 1, cfg, occluders=[near_segment])
+    assert reference is not None and mixed is not None and clean is not None
+    assert mixed.mean[2] < reference.mean[2] - 0.2  # the near face's pixels pull it forward
+    assert abs(clean.mean[2] - reference.mean[2]) < 0.1 and clean.mean[2] > mixed.mean[2] + 0.15
+    near = detection_feature(depth, K, near_box, "chair", 2, cfg)
+    near_with = detection_feature(depth, K, near_box, "chair", 2, cfg, occluders=[far_segment])
+    assert near is not None and near_with is not None and np.allclose(near.mean, near_with.mean)
+
+
+def test_a_detection_held_by_a_larger_box_in_front_keeps_its_pixels() -> None:
+    """A cup on the far part of a table: the table's box holds the cup's and its anchor is nearer, but a box
+    around another is not in front of it (``AROUND``), nor is one far larger (``LARGER``): the cup and a bottle
+    keep their pixels; a box about the table's size behind it does not."""
+    depth = _plane_depth(4.0)
+    depth[30:50, 10:70] = np.linspace(1.8, 2.6, 20)[:, None]  # a table top receding from 1.8 to 2.6 m
+    depth[22:30, 50:56] = 2.5  # a cup standing on its far part
+    table, cup = (10.0, 22.0, 70.0, 50.0), (50.0, 22.0, 56.0, 31.0)
+    cfg = FeatureConfig()
+    segments = {name: depth_segment(depth, b, cfg)[2] for name, b in (("table", table), ("cup", cup))}
+    assert segments["table"] is not None and segments["cup"] is not None
+    assert segments["table"].anchor < segments["cup"].anchor - cfg.gap_m
+    rows, cols, _ = depth_segment(depth, cup, cfg)
+    assert not in_front(depth[rows, cols], rows, cols, segments["cup"], [segments["table"]], cfg.gap_m).any()
+    # a bottle standing above the table's box is held by it only in part, but the table's box is far larger
+    depth[8:30, 50:56] = 2.5
+    bottle = (50.0, 8.0, 56.0, 31.0)
+    rows, cols, mine = depth_segment(depth, bottle, cfg)
+    assert mine is not None and len(rows) > 100
+    assert not in_front(depth[rows, cols], rows, cols, mine, [segments["table"]], cfg.gap_m).any()
+    # the same table in front of a box not much smaller than its own takes its pixels from it
+    wide = (20.0, 8.0, 70.0, 31.0)
+    depth[8:30, 20:70] = 2.5
+    rows, cols, mine = depth_segment(depth, wide, cfg)
+    assert mine is not None
+    assert in_front(depth[rows, cols], rows, cols, mine, [segments["table"]], cfg.gap_m).any()
