@@ -10,7 +10,7 @@ import numpy as np
 from perception.camera import Intrinsics  # also the name snapshots of 0.1.0 give it: perception.frame.Intrinsics
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class CameraModel:
     """Colour camera intrinsics and image size, depth units, and (optionally) an unregistered depth sensor.
 
@@ -25,6 +25,21 @@ class CameraModel:
     depth_scale: float = 5000.0
     depth_intrinsics: Intrinsics | None = None
     depth_to_color: np.ndarray | None = None
+
+    def _key(self) -> tuple:
+        return self.color, self.width, self.height, self.depth_scale, self.depth_intrinsics
+
+    def __eq__(self, other: object) -> bool:
+        """Field by field, the depth-to-colour transform by value (the generated ``__eq__`` compared it as a
+        tuple element and raised on an unregistered camera's 4 x 4 array)."""
+        if not isinstance(other, CameraModel):
+            return NotImplemented
+        a, b = self.depth_to_color, other.depth_to_color
+        same = a is b or (a is not None and b is not None and np.array_equal(a, b))
+        return same and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
 
     @property
     def registered(self) -> bool:

@@ -49,6 +49,13 @@ def test_unregistered_camera_round_trips():
     g = decode_frame(encode_frame(f, "png"))
     assert g.camera.depth_intrinsics == Intrinsics(58, 58, 32, 24)
     np.testing.assert_allclose(g.camera.depth_to_color, extr)
+    # compared by value, 4 x 4 transform included (the live view compares each keyframe's camera with the last)
+    assert g.camera == f.camera and hash(g.camera) == hash(f.camera) and g.camera != make_frame().camera
+    moved = extr.copy()
+    moved[0, 3] = 0.05
+    assert g.camera != CameraModel(
+        f.camera.color, f.camera.width, f.camera.height, 1000.0, Intrinsics(58, 58, 32, 24), moved
+    )
 
 
 def test_frame_without_odometry_or_detections_decodes_to_none():

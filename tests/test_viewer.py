@@ -25,7 +25,7 @@ from service.viewer_connect import native_viewer, open_outlets, rerun_executable
 from service.viewer_feed import CoreTracks, Keyframe, ViewerFeed
 from slam.build import build_core
 from sources import open_dataset
-from tests.conftest import free_port
+from tests.conftest import REDKITCHEN, free_port, requires_redkitchen
 
 pytestmark = pytest.mark.integration
 SCENE = "synthetic:room?seed=0&frames=40&width=160&height=120"
@@ -207,3 +207,29 @@ def test_a_keyframe_s_image_is_its_own_frame_with_the_core_s_boxes_when_ready():
     assert feed._late_boxes({1: core_boxes}) == (9, data.frame(9).timestamp, core_boxes)
     assert feed._late_boxes({1: core_boxes}) is None  # logged once
     assert feed._keyframe_message({1: core_boxes}, 10, 0.0) == (None, None)  # shown already
+
+
+@requires_redkitchen
+def test_keyframe_images_of_an_unregistered_camera_are_logged_one_after_another(tmp_path):
+    """7-Scenes' depth camera is not registered to its colour camera (a 4 x 4 depth-to-colour transform): each
+    keyframe's camera is compared with the last one's, which raised on the array and lost every image after the
+    first on the real sequence."""
+    import rerun as rr
+
+    data = open_dataset(str(REDKITCHEN))
+    assert not data.camera.registered
+    feed = ViewerFeed(SimpleNamespace(limits=_settings().ingest), None, _settings().viewer)  # type: ignore[arg-type]
+    rec = rr.RecordingStream("objslam-test")
+    rec.save(tmp_path / "kitchen.rrd")
+    sink = ViewerSink(rec)
+    for i in (0, 10):
+        feed._on_frame(SimpleNamespace(payload=SimpleNamespace(to_bytes=lambda i=i: encode_frame(data.frame(i)))))
+        feed._keyframes = [Keyframe(i, data.frame(i).timestamp)]
+        message, _ = feed._keyframe_message({i: None}, frame=i, when=data.frame(i).timestamp)
+        assert message is not None and message.camera == data.camera
+        sink._log_images(message)
+    rec.flush()
+    _, values = read_rrd(tmp_path / "kitchen.rrd")
+    blobs = [v for k, v in values.items() if k.startswith("/world/camera/rgb:") and "blob" in k.lower()]
+    assert blobs and len(blobs[0]) == 2  # both keyframes' images
+    assert sink.camera == data.camera
