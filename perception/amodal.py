@@ -20,6 +20,7 @@ from perception.features import (
     DepthSegment,
     FeatureConfig,
     FeatureVector,
+    Segmented,
     depth_points,
     feature_from_points,
     object_pixels,
@@ -179,11 +180,13 @@ def detection_feature(
     config: FeatureConfig,
     up: np.ndarray | None = None,
     occluders: Sequence[DepthSegment] = (),
+    segmented: Segmented | None = None,
 ) -> FeatureVector | None:
     """The camera-frame feature vector of a detection (amodally completed when configured, its near and far sides
     on locally averaged depth: ``FeatureConfig.near_radius``), its pixels without those of the other detections
-    in front of it (``occluders``: ``features.in_front``); None when too few points."""
-    pixels = object_pixels(depth_m, box, config, occluders)
+    in front of it (``occluders``: ``features.in_front``; ``segmented``: its own ``features.depth_segment``, when
+    the caller has it); None when too few points."""
+    pixels = object_pixels(depth_m, box, config, occluders, segmented)
     rows, cols, support = split_support(depth_m, K, box, *pixels, config)
     idx = stride_subsample(len(rows), config.max_points)
     points = depth_points(depth_m, K, rows[idx], cols[idx])

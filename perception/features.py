@@ -131,21 +131,28 @@ class DepthSegment:
     far: float
 
 
+Segmented = tuple[np.ndarray, np.ndarray, "DepthSegment | None"]
+"""A box's segment pixels (rows, columns) and their ``DepthSegment``, as ``depth_segment`` gives them."""
+
+
 def object_pixels(
-    depth_m: np.ndarray, box: Box, config: FeatureConfig, occluders: Sequence[DepthSegment] = ()
+    depth_m: np.ndarray,
+    box: Box,
+    config: FeatureConfig,
+    occluders: Sequence[DepthSegment] = (),
+    segmented: Segmented | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The box's valid pixels in the dominant depth segment anchored at the central median (SPEC 6.5), without
-    those of the ``occluders`` in front of it (``in_front``)."""
-    rows, cols, own = depth_segment(depth_m, box, config)
+    those of the ``occluders`` in front of it (``in_front``); ``segmented``: the box's ``depth_segment``, when
+    the caller has it already."""
+    rows, cols, own = segmented if segmented is not None else depth_segment(depth_m, box, config)
     if own is None or not occluders:
         return rows, cols
     keep = ~in_front(depth_m[rows, cols], rows, cols, own, occluders, config.gap_m)
     return rows[keep], cols[keep]
 
 
-def depth_segment(
-    depth_m: np.ndarray, box: Box, config: FeatureConfig
-) -> tuple[np.ndarray, np.ndarray, DepthSegment | None]:
+def depth_segment(depth_m: np.ndarray, box: Box, config: FeatureConfig) -> Segmented:
     """The pixels of ``object_pixels`` (no occluders) and their ``DepthSegment`` (None: no valid pixel)."""
     rows, cols = box_pixels(depth_m, box, most=config.pixels)
     if len(rows) == 0:
@@ -176,13 +183,12 @@ def in_front(
     occluders: Sequence[DepthSegment],
     margin_m: float,
 ) -> np.ndarray:
-    """Which of a detection's pixels belong to another detection in front of it: inside that one's box, within
-    its depth segment and more than ``margin_m`` nearer than this one's anchor, when that one's anchor is too.
-    A box around an object
-    behind another (a table behind a chair, the second chair of a row seen at a slant) holds the nearer one's
-    pixels, joined to its own depth segment where they touch; they pulled its near side, and with it the
-    completed centre, 0.3-0.5 m towards the camera. A box that holds most of this one is not in front of it but
-    around it (a table under a cup, a couch behind a teddy bear): its pixels are this one's."""
+    """Which of a detection's pixels belong to another detection in front of it: inside that one's box and within
+    its depth segment, when that one's anchor lies more than ``margin_m`` nearer than this one's. A box around an
+    object behind another (a table behind a chair, the second chair of a row seen at a slant) holds the nearer
+    one's pixels, joined to its own depth segment where they touch; they pulled its near side, and with it the
+    completed centre, 0.3-0.5 m towards the camera. A box that holds most of this one (``AROUND``: a table
+    under a cup, a couch behind a teddy bear) or is far larger (``LARGER``) is not in front of it."""
     out = np.zeros(len(depths), bool)
     a1, b1, a2, b2 = own.box
     area = max((a2 - a1) * (b2 - b1), 1e-9)
@@ -192,8 +198,7 @@ def in_front(
         larger = (x2 - x1) * (y2 - y1) / area
         if o.anchor >= own.anchor - margin_m or held >= AROUND or larger >= LARGER:
             continue
-        far = o.far
-        out |= (cols >= x1) & (cols < x2) & (rows >= y1) & (rows < y2) & (depths >= o.near) & (depths <= far)
+        out |= (cols >= x1) & (cols < x2) & (rows >= y1) & (rows < y2) & (depths >= o.near) & (depths <= o.far)
     return out
 
 

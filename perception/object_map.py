@@ -136,15 +136,16 @@ class ObjectMapper:
         whole = [not any(cut_by_border(d.box, w, h)) for d in detections]
         plane = level_plane(depth_m, K, self.floor_config)
         up = self._camera_up(pose, plane)
-        segments = [depth_segment(depth_m, d.box, self.features)[2] for d in detections]
+        found = [depth_segment(depth_m, d.box, self.features) for d in detections]
+        segments = [f[2] for f in found]
         occluders = [[s for s in segments if s is not None and s is not mine] for mine in segments]
         local = [
             _weighed(
-                detection_feature(depth_m, K, d.box, d.label, t, self.features, up, others),
+                detection_feature(depth_m, K, d.box, d.label, t, self.features, up, others, own),
                 inside,
                 self.features.cut_weight,
             )
-            for d, t, inside, others in zip(detections, ids, whole, occluders, strict=True)
+            for d, t, inside, others, own in zip(detections, ids, whole, occluders, found, strict=True)
         ]
         obs = [
             None if f is None else transform_feature(self._store(index, f, cut_vertically(d.box, h)), pose)
