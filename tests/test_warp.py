@@ -235,3 +235,50 @@ def test_a_detection_held_by_a_larger_box_in_front_keeps_its_pixels() -> None:
     rows, cols, mine = depth_segment(depth, wide, cfg)
     assert mine is not None
     assert in_front(depth[rows, cols], rows, cols, mine, [segments["table"]], cfg.gap_m).any()
+
+
+def test_a_wall_the_support_joined_to_a_small_object_leaves_it_with_the_support() -> None:
+    """A bottle 7 cm wide on a table against a wall: the table top runs on from the bottle's foot to the wall, so
+    the wall beside the bottle joins its depth segment. Without the table, the wall is apart from the bottle:
+    its pixels leave, and the bottle's width and centre are its own (the wall's doubled its width)."""
+    cam = Intrinsics(300.0, 300.0, 159.5, 119.5)
+    rows = np.arange(240, dtype=np.float32)[:, None]
+    with np.errstate(divide="ignore"):
+        table = np.where(rows > cam.cy, cam.fy * 0.5 / (rows - cam.cy), np.inf)  # 0.5 m below the camera
+    depth = np.tile(np.minimum(table, 2.5), (1, 320)).astype(np.float32)  # the wall 2.5 m away above it
+    depth[154:188, 155:165] = 2.2  # the bottle: 10 px = 7.3 cm at 2.2 m, its foot on the table at row 188
+    box = (153.0, 152.0, 167.0, 190.0)
+    kept_rows, kept_cols = object_points(depth, cam, box, FeatureConfig())
+    assert len(kept_cols) > 50 and kept_cols.min() >= 155 and kept_cols.max() < 165
+    assert depth[kept_rows, kept_cols].max() < 2.3
+    f = detection_feature(depth, cam, box, "bottle", 1, FeatureConfig())
+    assert f is not None
+    true_x = (160.0 - cam.cx) * 2.2 / cam.fx  # the bottle's columns 155-164 centre on column 159.5 + 0.5
+    assert abs(f.mean[0] - true_x) < 0.01
+    assert np.sqrt(12.0 * f.cov[0, 0]) == pytest.approx(10 * 2.2 / cam.fx, rel=0.15)
+
+
+def test_a_screen_seen_at_a_slant_is_a_panel_not_as_deep_as_it_is_wide() -> None:
+    """A 1 m wide screen 3 m away turned 40 degrees, nothing behind it nearby: completed as deep as it is wide, a
+    chair's view would make it a 0.7 m square; a screen keeps its slanted face, 10 cm deep."""
+    cam = Intrinsics(300.0, 300.0, 159.5, 119.5)
+    depth = np.full((240, 320), 6.0, np.float32)
+    angle = np.radians(40.0)
+    direction = np.array([np.cos(angle), np.sin(angle)])  # along the screen in the camera's (x, z) plane
+    centre = np.array([0.0, 3.0])
+    cols = np.arange(320)
+    ray_x = (cols - cam.cx) / cam.fx
+    # the ray (x/z = ray_x) meets the line centre + s * direction where s solves (cx + s dx) = ray_x (cz + s dz)
+    s = (ray_x * centre[1] - centre[0]) / (direction[0] - ray_x * direction[1])
+    on = np.abs(s) <= 0.5
+    depth[100:140, on] = (centre[1] + s[on] * direction[1]).astype(np.float32)
+    box = (float(cols[on].min()), 100.0, float(cols[on].max() + 1), 140.0)
+    screen = detection_feature(depth, cam, box, "tv", 1, FeatureConfig())
+    chair = detection_feature(depth, cam, box, "chair", 1, FeatureConfig())
+    assert screen is not None and chair is not None
+    plane = np.ix_([0, 2], [0, 2])
+    vals, vecs = np.linalg.eigh(screen.cov[plane])
+    assert np.sqrt(12.0 * vals[0]) < 0.15 and np.sqrt(12.0 * vals[1]) == pytest.approx(1.0, rel=0.15)
+    assert abs(vecs[:, 1] @ direction) > np.cos(np.radians(5.0))  # its long axis is the screen's
+    assert np.linalg.norm(screen.mean[[0, 2]] - centre) < 0.08
+    assert np.sqrt(12.0 * np.linalg.eigvalsh(chair.cov[plane])[0]) > 0.4  # completed as deep as it is wide
