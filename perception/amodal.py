@@ -25,9 +25,9 @@ from perception.features import (
     feature_from_points,
     object_pixels,
     ring_windows,
-    split_support,
     stride_subsample,
 )
+from perception.support import split_support
 
 
 def room_behind(

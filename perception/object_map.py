@@ -15,6 +15,7 @@ from perception.features import (
     FeatureConfig,
     FeatureVector,
     depth_segment,
+    hidden_by_twin,
     merge_features,
     transform_feature,
 )
@@ -139,13 +140,26 @@ class ObjectMapper:
         found = [depth_segment(depth_m, d.box, self.features) for d in detections]
         segments = [f[2] for f in found]
         occluders = [[s for s in segments if s is not None and s is not mine] for mine in segments]
+        twins = [
+            [
+                s
+                for s, e in zip(segments, detections, strict=True)
+                if s is not None and e is not d and e.label == d.label
+            ]
+            for d in detections
+        ]
+        hidden = [
+            s is not None and hidden_by_twin(s, t, self.features.gap_m) for s, t in zip(segments, twins, strict=True)
+        ]
         local = [
-            _weighed(
+            None
+            if behind
+            else _weighed(
                 detection_feature(depth_m, K, d.box, d.label, t, self.features, up, others, own),
                 inside,
                 self.features.cut_weight,
             )
-            for d, t, inside, others, own in zip(detections, ids, whole, occluders, found, strict=True)
+            for d, t, inside, others, own, behind in zip(detections, ids, whole, occluders, found, hidden, strict=True)
         ]
         obs = [
             None if f is None else transform_feature(self._store(index, f, cut_vertically(d.box, h)), pose)

@@ -12,10 +12,11 @@ import numpy as np
 import pytest
 
 from perception.camera import Intrinsics
-from perception.features import FeatureConfig, backproject_detection, depth_points, transform
+from perception.features import FeatureConfig, depth_points, transform
 from perception.frame import CameraModel, Detection
 from perception.object_map import ObjectMapper
 from perception.registration import depth_in_color
+from perception.support import backproject_detection
 from sources import open_dataset
 from sources.base import ObjectTruth
 from sources.raycast import Renderer, Surface, box_surfaces, object_texture, room_surfaces, surface_texture

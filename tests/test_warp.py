@@ -13,14 +13,13 @@ from perception.amodal import detection_feature
 from perception.camera import Intrinsics
 from perception.features import (
     FeatureConfig,
-    backproject_detection,
     depth_segment,
     dominant_depth_mask,
     feature_from_points,
+    hidden_by_twin,
     in_front,
-    object_points,
-    support_plane,
 )
+from perception.support import backproject_detection, object_points, support_plane
 from perception.warp import needs_warp, warp_box, warp_depth
 from sources import open_dataset
 
@@ -282,3 +281,21 @@ def test_a_screen_seen_at_a_slant_is_a_panel_not_as_deep_as_it_is_wide() -> None
     assert abs(vecs[:, 1] @ direction) > np.cos(np.radians(5.0))  # its long axis is the screen's
     assert np.linalg.norm(screen.mean[[0, 2]] - centre) < 0.08
     assert np.sqrt(12.0 * np.linalg.eigvalsh(chair.cov[plane])[0]) > 0.4  # completed as deep as it is wide
+
+
+def test_a_box_that_shows_mostly_a_nearer_object_of_its_class_is_hidden_by_it() -> None:
+    """The second chair of a row seen at a slant: its visible box lies inside the first chair's and its centre,
+    where its segment is anchored, shows the first chair: its view would be the first chair's. A cup inside a
+    table's box, or a chair beside the first, anchored on its own surface, is not hidden."""
+    depth = _plane_depth(4.0)
+    depth[15:50, 10:40] = 2.0  # the first chair
+    depth[15:30, 38:44] = 2.5  # the second one's back, showing beside it
+    cfg = FeatureConfig()
+    first = depth_segment(depth, (10.0, 15.0, 40.0, 50.0), cfg)[2]
+    second = depth_segment(depth, (25.0, 15.0, 44.0, 48.0), cfg)[2]
+    assert first is not None and second is not None and abs(second.anchor - first.anchor) < cfg.gap_m
+    assert hidden_by_twin(second, [first], cfg.gap_m)
+    assert not hidden_by_twin(first, [second], cfg.gap_m)  # the larger, holding one keeps its view
+    depth[15:50, 50:70] = 2.5  # a chair of its own beside the first, its box overlapping the first's edge
+    beside = depth_segment(depth, (36.0, 15.0, 70.0, 50.0), cfg)[2]
+    assert beside is not None and not hidden_by_twin(beside, [first], cfg.gap_m)
