@@ -299,3 +299,20 @@ def test_a_box_that_shows_mostly_a_nearer_object_of_its_class_is_hidden_by_it() 
     depth[15:50, 50:70] = 2.5  # a chair of its own beside the first, its box overlapping the first's edge
     beside = depth_segment(depth, (36.0, 15.0, 70.0, 50.0), cfg)[2]
     assert beside is not None and not hidden_by_twin(beside, [first], cfg.gap_m)
+
+
+def test_a_ring_without_depth_beyond_the_sensor_range_does_not_bound_the_depth_behind_an_object() -> None:
+    """A 0.4 m wide face 3.7 m away with a sensor that returns nothing beyond 4 m: the floor beside it reaches up
+    to 4 m, but the missing returns above are no wall, so the face is completed as deep as wide (its centre 0.2 m
+    behind it), not to the floor's farthest returns; with a wall 5 cm behind it, it stays bounded."""
+    depth = np.full((60, 80), np.nan, np.float32)  # nothing within range above the floor
+    depth[45:] = np.linspace(3.7, 3.99, 15)[:, None]  # the floor beside and below the face, up to the range
+    depth[20:45, 35:46] = 3.7  # the face: 11 px at fx 100 and 3.7 m = 0.41 m
+    box = (35.0, 20.0, 46.0, 45.0)
+    f = detection_feature(depth, K, box, "chair", 1, FeatureConfig(support_tilt_deg=None))
+    assert f is not None and f.mean[2] == pytest.approx(3.7 + 0.2, abs=0.04)
+    walled = depth.copy()
+    walled[:45] = 3.75
+    walled[20:45, 35:46] = 3.7
+    g = detection_feature(walled, K, box, "chair", 1, FeatureConfig(support_tilt_deg=None, gap_m=0.02))
+    assert g is not None and g.mean[2] < 3.74
