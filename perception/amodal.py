@@ -16,6 +16,7 @@ from scipy.ndimage import distance_transform_edt, uniform_filter
 
 from perception.camera import Intrinsics, pixels_to_points
 from perception.features import (
+    PANEL_DEPTH_M,
     Box,
     DepthSegment,
     FeatureConfig,
@@ -155,12 +156,6 @@ def spanned(
     return mean + ((bottom + top) / 2.0 - mean @ up) * up, Q @ cov @ Q + (top - bottom) ** 2 / 12.0 * np.outer(up, up)
 
 
-PANEL_DEPTH_M: dict[str, float] = {"tv": 0.1, "clock": 0.06}
-"""Classes that are panels (a screen, a wall clock): their visible face is the whole object but for this depth
-behind it (flat screens and monitors are 3-10 cm deep; the 7-Scenes monitors were annotated 8 cm), so a view is
-not completed as deep as it is wide (``complete_amodal``), and no deeper than the free depth behind it."""
-
-
 def panel(face: FeatureVector | None, ray: np.ndarray, depth: float) -> tuple[np.ndarray, np.ndarray]:
     """Centre and covariance of a panel from its visible face's points' Gaussian: the face as it is (a screen
     seen at a slant keeps its slant), moved back half of ``depth`` along ``ray`` and thickened by it."""
@@ -217,7 +212,7 @@ def detection_feature(
     on locally averaged depth: ``FeatureConfig.near_radius``), its pixels without those of the other detections
     in front of it (``occluders``: ``features.in_front``; ``segmented``: its own ``features.depth_segment``, when
     the caller has it); None when too few points."""
-    pixels = object_pixels(depth_m, box, config, occluders, segmented)
+    pixels = object_pixels(depth_m, box, config, occluders, segmented, label)
     rows, cols, support = split_support(depth_m, K, box, *pixels, config)
     idx = stride_subsample(len(rows), config.max_points)
     points = depth_points(depth_m, K, rows[idx], cols[idx])

@@ -137,7 +137,7 @@ class ObjectMapper:
         whole = [not any(cut_by_border(d.box, w, h)) for d in detections]
         plane = level_plane(depth_m, K, self.floor_config)
         up = self._camera_up(pose, plane)
-        found = [depth_segment(depth_m, d.box, self.features) for d in detections]
+        found = [depth_segment(depth_m, d.box, self.features, d.label) for d in detections]
         segments = [f[2] for f in found]
         occluders = [[s for s in segments if s is not None and s is not mine] for mine in segments]
         twins = [

@@ -316,3 +316,22 @@ def test_a_ring_without_depth_beyond_the_sensor_range_does_not_bound_the_depth_b
     walled[20:45, 35:46] = 3.7
     g = detection_feature(walled, K, box, "chair", 1, FeatureConfig(support_tilt_deg=None, gap_m=0.02))
     assert g is not None and g.mean[2] < 3.74
+
+
+def test_a_box_whose_centre_has_no_depth_gives_no_view() -> None:
+    """A chair beyond the sensor's range: its box holds only the floor in front of it with depth, which would place
+    it there; with depth over its centre (the chair within range) it is seen."""
+    depth = np.full((60, 80), np.nan, np.float32)
+    depth[45:] = np.linspace(3.7, 3.99, 15)[:, None]  # the floor in front, up to the range
+    box = (30.0, 20.0, 50.0, 50.0)
+    assert depth_segment(depth, box, FeatureConfig())[2] is None
+    assert detection_feature(depth, K, box, "chair", 1, FeatureConfig()) is None
+    depth[20:45, 30:50] = 3.9
+    assert detection_feature(depth, K, box, "chair", 1, FeatureConfig()) is not None
+    # a screen's glass returns no depth: its frame and the wall around it place it
+    wall = _plane_depth(2.0)
+    wall[22:38, 32:48] = np.nan
+    screen = (30.0, 20.0, 50.0, 40.0)
+    assert detection_feature(wall, K, screen, "chair", 1, FeatureConfig()) is None
+    tv = detection_feature(wall, K, screen, "tv", 1, FeatureConfig())
+    assert tv is not None and tv.mean[2] == pytest.approx(2.0, abs=0.06)
