@@ -143,8 +143,17 @@ def complete_amodal(
         cov = P @ f.cov @ P + depth**2 / 12.0 * np.outer(ray, ray)
     if level:
         assert up is not None
+        mean = centred_across(mean, smooth, np.cross(up, ray))
         mean, cov = spanned(mean, cov, up, vertical_extent(smooth @ up, mean - (mean @ up) * up, up, support))
     return FeatureVector(mean, cov, f.n, label, track_id, f.sources)
+
+
+def centred_across(mean: np.ndarray, points: np.ndarray, side: np.ndarray) -> np.ndarray:
+    """``mean`` moved along the unit ``side`` to the middle of the points' extent across it (2nd to 98th
+    percentile): an object's centre is the middle of its extent, and the mean of its visible points leans to
+    where most of them are (a chair seen from its side, to its back)."""
+    lo, hi = np.percentile(points @ side, [2, 98])
+    return mean + ((lo + hi) / 2.0 - mean @ side) * side
 
 
 def spanned(

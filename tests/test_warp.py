@@ -335,3 +335,19 @@ def test_a_box_whose_centre_has_no_depth_gives_no_view() -> None:
     assert detection_feature(wall, K, screen, "chair", 1, FeatureConfig()) is None
     tv = detection_feature(wall, K, screen, "tv", 1, FeatureConfig())
     assert tv is not None and tv.mean[2] == pytest.approx(2.0, abs=0.06)
+
+
+def test_a_chair_seen_from_its_side_is_centred_on_its_footprint_not_on_its_back() -> None:
+    """An armchair's side 2 m away, its back at the right end of its 0.4 m footprint: many visible points are the
+    back's, so their mean lies 4 cm towards it; the centre across the ray is the middle of the points' extent."""
+    depth = _plane_depth(4.0)
+    depth[10:30, 45:50] = 2.0  # the back, 0.4 m above the seat
+    depth[30:46, 30:50] = 2.0  # the seat's side, 0.3 m deep
+    depth[46:60, 30] = depth[46:60, 49] = 2.0  # two legs down to the image's lower edge
+    box, up = (30.0, 10.0, 50.0, 60.0), np.array([0.0, -1.0, 0.0])
+    f = detection_feature(depth, K, box, "chair", 1, FeatureConfig(support_tilt_deg=None), up=up)
+    plain = detection_feature(depth, K, box, "chair", 1, FeatureConfig(amodal=None))
+    assert f is not None and plain is not None
+    middle = ((30 + 49) / 2 - K.cx) * 2.0 / K.fx
+    assert plain.mean[0] - middle > 0.03
+    assert abs(f.mean[0] - middle) < 0.02
