@@ -173,17 +173,21 @@ def segment_anchor(depth_m: np.ndarray, box: Box, config: FeatureConfig, rows: n
     return float(np.median(depth_m[cr, cc])) if len(cr) else float(np.median(depth_m[rows, cols]))
 
 
+def centre_depth(depth_m: np.ndarray, box: Box, config: FeatureConfig) -> float:
+    """The share of the pixels in a box's central ``anchor_fraction`` that have depth (1 for an empty window)."""
+    window = box_window(depth_m.shape, box, config.anchor_fraction)
+    if window is None:
+        return 1.0
+    y1, y2, x1, x2 = window
+    return float(np.isfinite(depth_m[y1:y2, x1:x2]).mean())
+
+
 def depth_segment(depth_m: np.ndarray, box: Box, config: FeatureConfig, label: str = "") -> Segmented:
     """The pixels of ``object_pixels`` (no occluders) and their ``DepthSegment`` (None: no valid pixel, or too few
     in the box's centre, ``FeatureConfig.min_centre_depth``, unless ``label`` is a panel's)."""
     rows, cols = box_pixels(depth_m, box, most=config.pixels)
-    centre = box_window(depth_m.shape, box, config.anchor_fraction)
-    if len(rows) and centre is not None and label not in PANEL_DEPTH_M:
-        y1, y2, x1, x2 = centre
-        if np.isfinite(depth_m[y1:y2, x1:x2]).mean() < config.min_centre_depth:
-            rows, cols = rows[:0], cols[:0]
-    if len(rows) == 0:
-        return rows, cols, None
+    if len(rows) == 0 or (label not in PANEL_DEPTH_M and centre_depth(depth_m, box, config) < config.min_centre_depth):
+        return rows[:0], cols[:0], None
     anchor = segment_anchor(depth_m, box, config, rows, cols)
     depths = depth_m[rows, cols]
     keep = dominant_depth_mask(depths, anchor, config.gap_m)
@@ -230,9 +234,8 @@ def overlap(box: Box, other: Box) -> tuple[float, float]:
     a1, b1, a2, b2 = box
     x1, y1, x2, y2 = other
     area = max((a2 - a1) * (b2 - b1), 1e-9)
-    return max(0.0, min(a2, x2) - max(a1, x1)) * max(0.0, min(b2, y2) - max(b1, y1)) / area, (x2 - x1) * (
-        y2 - y1
-    ) / area
+    shared = max(0.0, min(a2, x2) - max(a1, x1)) * max(0.0, min(b2, y2) - max(b1, y1))
+    return shared / area, (x2 - x1) * (y2 - y1) / area
 
 
 TWIN_HELD = 0.3
