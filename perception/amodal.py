@@ -28,6 +28,7 @@ from perception.features import (
     ring_windows,
     stride_subsample,
 )
+from perception.floor import with_span
 from perception.support import split_support
 
 NO_RETURN_SHARE = 0.2
@@ -144,7 +145,7 @@ def complete_amodal(
     if level:
         assert up is not None
         mean = centred_across(mean, smooth, np.cross(up, ray))
-        mean, cov = spanned(mean, cov, up, vertical_extent(smooth @ up, mean - (mean @ up) * up, up, support))
+        mean, cov = with_span(mean, cov, up, *vertical_extent(smooth @ up, mean - (mean @ up) * up, up, support))
     return FeatureVector(mean, cov, f.n, label, track_id, f.sources)
 
 
@@ -154,15 +155,6 @@ def centred_across(mean: np.ndarray, points: np.ndarray, side: np.ndarray) -> np
     where most of them are (a chair seen from its side, to its back)."""
     lo, hi = np.percentile(points @ side, [2, 98])
     return mean + ((lo + hi) / 2.0 - mean @ side) * side
-
-
-def spanned(
-    mean: np.ndarray, cov: np.ndarray, up: np.ndarray, ends: tuple[float, float]
-) -> tuple[np.ndarray, np.ndarray]:
-    """A view's Gaussian spanning the heights ``ends`` (bottom, top along ``up``) as a uniform extent."""
-    bottom, top = ends
-    Q = np.eye(3) - np.outer(up, up)
-    return mean + ((bottom + top) / 2.0 - mean @ up) * up, Q @ cov @ Q + (top - bottom) ** 2 / 12.0 * np.outer(up, up)
 
 
 def panel(face: FeatureVector | None, ray: np.ndarray, depth: float) -> tuple[np.ndarray, np.ndarray]:
