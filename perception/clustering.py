@@ -36,8 +36,9 @@ class ClusterConfig:
     """Cluster each class separately beside a far group (as g does in the global matrix); ~classes-times cheaper."""
     selection: str = "eom"
     """HDBSCAN cluster selection method: "eom" or "leaf"."""
-    axis_scale: float = 1.5
-    """Ellipsoid semi-axes in standard deviations (a uniform extent's half-width is sqrt(3) std; 1.5 measured best)."""
+    axis_scale: float = float(np.sqrt(3.0))
+    """Ellipsoid semi-axes in standard deviations: sqrt(3), the half-width of a uniform extent, as the views'
+    covariances model an object's extent (``amodal``: depth^2 / 12 along the ray)."""
     fit_distance: float = 2.0
     """A new observation fits an object (set T of eq. 2.15) when its distance to the object is below this."""
     outlier_threshold: int = 12
@@ -46,9 +47,9 @@ class ClusterConfig:
     """Bound N on clustered vectors; above it, consecutive vectors of each track are pooled (keeps O(N^2) fast)."""
     merge_distance: float = 2.0
     """Same-class clusters whose pooled Gaussians are within this distance D are one object (partial views)."""
-    coincident: float = 1.0
-    """Same-class objects whose centres are closer than this fraction of the smaller one's half-extent are one
-    (``perception.coincident``); 0: never."""
+    coincident: float = 1.5
+    """Same-class objects whose centres are closer than this many median standard deviations of the smaller
+    one's extent are one (``perception.coincident``; its own measure, not ``axis_scale``); 0: never."""
 
 
 @dataclass(frozen=True)
@@ -342,7 +343,6 @@ class Clusterer:
                 [o.label for o in objects],
                 np.array([o.mean for o in objects]),
                 np.array([o.cov for o in objects]),
-                self.config.axis_scale,
                 self.config.coincident,
             )
             if len(groups) < len(objects):

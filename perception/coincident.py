@@ -14,18 +14,16 @@ from collections.abc import Sequence
 import numpy as np
 
 
-def extent_radius(cov: np.ndarray, axis_scale: float) -> float:
-    """An object's typical half-extent: ``axis_scale`` times its median standard deviation."""
-    return axis_scale * float(np.sqrt(np.median(np.clip(np.linalg.eigvalsh(cov), 0.0, None))))
+def extent_radius(cov: np.ndarray, stds: float) -> float:
+    """An object's typical reach: ``stds`` times its median standard deviation."""
+    return stds * float(np.sqrt(np.median(np.clip(np.linalg.eigvalsh(cov), 0.0, None))))
 
 
-def coincident_groups(
-    labels: Sequence[str], means: np.ndarray, covs: np.ndarray, axis_scale: float, fraction: float
-) -> list[list[int]]:
-    """Groups of object indices to join: same label, centres closer than ``fraction`` of the smaller of their
-    half-extents (``extent_radius``); transitively. Every index is in exactly one group, in order."""
+def coincident_groups(labels: Sequence[str], means: np.ndarray, covs: np.ndarray, stds: float) -> list[list[int]]:
+    """Groups of object indices to join: same label, centres closer than the smaller of their reaches
+    (``extent_radius`` of ``stds``); transitively. Every index is in exactly one group, in order."""
     n = len(labels)
-    radius = [extent_radius(c, axis_scale) for c in covs]
+    radius = [extent_radius(c, stds) for c in covs]
     parent = list(range(n))
 
     def root(i: int) -> int:
@@ -35,7 +33,7 @@ def coincident_groups(
 
     for i in range(n):
         for j in range(i + 1, n):
-            near = float(np.linalg.norm(means[i] - means[j])) < fraction * min(radius[i], radius[j])
+            near = float(np.linalg.norm(means[i] - means[j])) < min(radius[i], radius[j])
             if labels[i] == labels[j] and near:
                 parent[root(j)] = root(i)
     groups: dict[int, list[int]] = {}

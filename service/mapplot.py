@@ -12,6 +12,7 @@ import numpy as np
 
 from evaluation.trajectory_metrics import TrajectoryError
 from graph.trajectory import Trajectory
+from perception.clustering import ClusterConfig
 
 
 def ground_axes(points: np.ndarray) -> np.ndarray:
@@ -22,8 +23,8 @@ def ground_axes(points: np.ndarray) -> np.ndarray:
 
 
 def plot_objects(ax, objects: list[dict], axes: np.ndarray, origin: np.ndarray) -> None:
-    """Each object's ellipse (covariance projected on the ground plane, ~1.5 std) with its label, and a cross
-    at its iSAM2 landmark when it has one."""
+    """Each object's ellipse (covariance projected on the ground plane, ``axis_scale`` std as objects.json's
+    axes) with its label, and a cross at its iSAM2 landmark when it has one."""
     from matplotlib.patches import Ellipse
 
     colours = plt.get_cmap("tab10")
@@ -31,7 +32,7 @@ def plot_objects(ax, objects: list[dict], axes: np.ndarray, origin: np.ndarray) 
         mean = (np.asarray(o["mean"]) - origin) @ axes.T
         cov2 = axes @ np.asarray(o["cov"]) @ axes.T
         vals, vecs = np.linalg.eigh(cov2)
-        w, h = 2 * 1.5 * np.sqrt(np.clip(vals, 1e-8, None))
+        w, h = 2 * ClusterConfig().axis_scale * np.sqrt(np.clip(vals, 1e-8, None))
         angle = np.degrees(np.arctan2(vecs[1, 1], vecs[0, 1]))
         ax.add_patch(Ellipse(mean, h, w, angle=angle, fill=False, lw=1.5, color=colours(i % 10)))
         ax.annotate(o["label"], mean, fontsize=7, ha="center", color=colours(i % 10))

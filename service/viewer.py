@@ -6,7 +6,7 @@ Entities (world frame = the first camera's, x right, y down, z forward)::
     world/trajectory          optimised poses, re-logged when the graph moved
     world/odometry            the front end's poses
     world/ground_truth        aligned ground truth (``run`` on a dataset with it)
-    world/objects             ellipsoids (~1.5 sigma) coloured by class, "label #id (n obs)"
+    world/objects             ellipsoids (the objects' axes) coloured by class, "label #id (n obs)"
     world/landmarks           the objects' iSAM2 landmarks
     world/loops/accepted      loop closures as segments between keyframes, labelled by source
     world/loops/rejected      the refused candidates, labelled by reason
@@ -26,11 +26,12 @@ import rerun.blueprint as rrb
 from scipy.spatial.transform import Rotation
 
 from graph.trajectory import Trajectory
+from perception.clustering import ClusterConfig
 from perception.frame import CameraModel, Detection
 from service.map_summary import MapSummary
 from service.protocol import Inspected
 
-SIGMAS = 1.5  # ellipsoid half-axes in standard deviations, as the ellipses of map.png
+SIGMAS = ClusterConfig().axis_scale  # ellipsoid half-axes in standard deviations, as objects.json's axes
 MAX_STRIP_POINTS = 2000  # a trajectory is decimated to this many poses when logged
 MAX_MAP_POINTS = 50_000
 EPOCH_S = 1e8  # timestamps above this are Unix times (TUM), below seconds from the start (synthetic)

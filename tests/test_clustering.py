@@ -202,8 +202,8 @@ def test_same_class_objects_standing_in_one_place_are_one_but_neighbours_in_a_ro
     labels = ["chair", "chair", "chair", "cup", "cup"]
     # the first two chairs stand inside each other: one; the third, 0.5 m along a row: its own; a cup on the
     # first chair is another class; two cups 6 cm apart, each 4.5 cm across its median half-extent: two
-    assert coincident_groups(labels, means, covs, 1.5, 1.0) == [[0, 1], [2], [3], [4]]
-    assert coincident_groups(labels, means, covs, 1.5, 0.0) == [[0], [1], [2], [3], [4]]
+    assert coincident_groups(labels, means, covs, 1.5) == [[0, 1], [2], [3], [4]]
+    assert coincident_groups(labels, means, covs, 0.0) == [[0], [1], [2], [3], [4]]
 
 
 def test_the_clusterer_joins_two_clusters_of_one_chair_that_share_a_keyframe() -> None:
