@@ -34,6 +34,9 @@ def test_a_tiny_run_reaches_its_rows_and_its_restart_restores_the_live_trajector
         assert 0 < values["checkpoints / kf"] <= 1 and values["writer ms p50 / p99"]
         assert 0 < values["checkpoint ms p50"] <= values["p99"] <= values["max"]
         assert 0 < values["checkpoint CPU ms p50"] < values["max"]
+        assert values["control CPU ms p50"] > 0
+        ratio = values["checkpoint CPU ms p50"] / values["control CPU ms p50"]
+        assert values["checkpoint / control"] == pytest.approx(ratio, rel=0.05)  # of rounded figures
         assert 0 < values["restart s"] < 30 and values["RSS MB"] > 0
     growth = [dict(zip(HEADER, row, strict=True))["RSS kB / kf since row 1"] for row in rows]
     assert growth[0] == "" and isinstance(growth[1], float)  # measured from the first row on
