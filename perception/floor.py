@@ -51,6 +51,12 @@ class FloorConfig:
     development scenes map the same with 0.1."""
     agree_m: float = 0.05
     """Planes within this height of the lowest common one are the floor."""
+    lower_share: float = 0.05
+    """A level surface below the dominant one (``level_plane``) holding at least this share of the lower half's
+    pixels, and spanning ``lower_span_m``, is the keyframe's floor instead."""
+    lower_span_m: float = 1.0
+    """How wide (across the camera's view, 5th to 95th percentile) such a lower surface must be: a floor, not a
+    chair's seat."""
     max_gap_m: float = 1.5
     """A floor-standing object is stretched only when its visible bottom lies at most this far above the floor
     (and no more than ``agree_m`` below it): farther, the object or the floor estimate is something else."""
@@ -78,11 +84,40 @@ def level_plane(depth_m: np.ndarray, K: Intrinsics, config: FloorConfig) -> np.n
     best = int(np.argmax(count))
     if count[best] < config.min_share * len(points):
         return None
-    on = points[inliers[:, best]]  # refit by least squares on the inliers
-    centre = on.mean(axis=0)
+    on = lowest_surface(points, points[inliers[:, best]], config)
+    centre = on.mean(axis=0)  # refit by least squares on the inliers
     normal = np.linalg.svd(on - centre, full_matrices=False)[2][-1]
     normal *= -1.0 if normal[1] > 0 else 1.0
     return np.r_[normal, -normal @ centre]
+
+
+def lowest_surface(points: np.ndarray, dominant: np.ndarray, config: FloorConfig) -> np.ndarray:
+    """The inliers of the lowest broad level surface among ``points``: those of the ``dominant`` level plane, or
+    of one below it parallel to it (``lower_share`` of the points within ``inlier_m`` of one height, spread
+    ``lower_span_m`` across). A camera at a person's height looking over tables sees their tops more than the
+    floor between them: in the development scenes with handheld sweeps the floor never held a quarter of the
+    lower half, the table tops were taken for it, and the chairs, stretched down to them, lay 0.1-0.25 m
+    high."""
+    centre = dominant.mean(axis=0)
+    normal = np.linalg.svd(dominant - centre, full_matrices=False)[2][-1]
+    normal *= -1.0 if normal[1] > 0 else 1.0
+    height = (points - centre) @ normal  # above the dominant plane, towards the camera's up
+    below = np.sort(height[height < -2.0 * config.inlier_m])
+    if len(below) < config.lower_share * len(points):
+        return dominant
+    # for each height below, how many lie within 2 x inlier_m above it; the lowest with enough starts a surface
+    counts = np.searchsorted(below, below + 2.0 * config.inlier_m, side="right") - np.arange(len(below))
+    starts, tried = np.flatnonzero(counts >= config.lower_share * len(points)), -np.inf
+    for start in starts:
+        if below[start] <= tried:  # within the band of one tried before: the same surface
+            continue
+        tried = below[start] + 2.0 * config.inlier_m
+        on = points[(height >= below[start]) & (height <= tried)]
+        across = on - np.outer(on @ normal, normal)
+        spread = np.percentile(across, 95, axis=0) - np.percentile(across, 5, axis=0)
+        if np.linalg.norm(spread) >= config.lower_span_m:
+            return on
+    return dominant
 
 
 @dataclass(frozen=True)

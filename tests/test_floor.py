@@ -146,3 +146,20 @@ def test_a_wall_screen_whose_top_most_views_cut_off_keeps_the_top_the_others_see
     # every view cut at the top: the highest tops (90th percentile), not their median
     _, top_all_cut = vertical_span(means[4:], covs[4:], np.ones(8), up, np.array([[True, False]] * 8))
     assert np.isclose(top_all_cut, 1.45, atol=0.01)
+
+
+def test_a_view_over_a_wide_table_finds_the_floor_beyond_it_not_the_table_top() -> None:
+    """A camera at a person's height looking down over a wide table: its top fills most of the lower half, the
+    floor shows only around it. The keyframe's floor is the lower surface, not the dominant one; with a
+    seat-sized surface below the table top instead of a floor, the table top stays."""
+    wide = ObjectTruth(1, "dining table", (4.5, 4.5, 0.375), (1.6, 1.2, 0.75), 0.0)
+    pose = looking_at((4.5, 4.5, 0.75), np.array([np.pi]), 1.4, 1.55)[0]
+    r = Renderer(surfaces([wide]), K, W, H).render(pose)
+    depth = np.where(r.depth > 0, r.depth, np.nan).astype(np.float32)
+    assert np.mean(r.ids[H // 2 :] == wide.id) > 0.25  # the table fills most of the lower half
+    plane = level_plane(depth, K, FloorConfig())
+    assert plane is not None
+    foot = world_floor_view(plane, pose)[1]
+    assert abs(foot[2]) < 0.02  # the floor, z = 0
+    only_top = level_plane(depth, K, FloorConfig(lower_span_m=20.0))  # no lower surface is wide enough
+    assert only_top is not None and abs(world_floor_view(only_top, pose)[1][2] - 0.75) < 0.02
