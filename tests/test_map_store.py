@@ -494,3 +494,33 @@ def test_a_store_with_object_poses_written_whole_still_restores_them(tmp_path, f
     again = core_parts(restored)
     reader.checkpoint(again.small, again.logs, core.graph.num_keyframes, 80)
     assert reader.logs["object_pose_revisions"].written == len(core.object_poses)
+
+
+def test_a_whole_graph_solve_re_places_only_the_keyframes_it_moved_so_the_store_writes_only_those():
+    """After a loop closure's whole-graph solve every keyframe's pose changes a little (here 0.1 mm and 0.001
+    degrees) and a stretch of them by centimetres: only that stretch is re-placed and logged, not every pose,
+    which the store would write again at every re-placement (work that grows with the map)."""
+    from scipy.spatial.transform import Rotation
+
+    from slam.repose import moved_only
+    from slam.settings import ObjectSettings
+
+    rng = np.random.default_rng(3)
+    n = 400
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, 3] = rng.normal(size=(n, 3))
+    placed = PlacedPoses(poses)
+    now = poses.copy()
+    now[:, :3, 3] += 1e-4
+    now[:, :3, :3] = Rotation.from_euler("z", 0.001, degrees=True).as_matrix() @ now[:, :3, :3]
+    now[300:340, :3, 3] += 0.03  # the stretch the loop closure corrected
+    now[350, :3, :3] = Rotation.from_euler("x", 0.2, degrees=True).as_matrix() @ now[350, :3, :3]  # a turn alone
+    cfg = ObjectSettings()
+    chosen = moved_only(now, placed.rows(), cfg)
+    moved = np.flatnonzero((chosen != poses).reshape(n, 16).any(axis=1))
+    assert moved.tolist() == [*range(300, 340), 350]
+    assert np.array_equal(chosen[moved], now[moved])
+    before = len(placed.revisions())
+    placed.revise(chosen)
+    assert len(placed.revisions()) == before + len(moved)  # appended, not begun again with every pose
+    assert np.abs(chosen - now)[:, :3, 3].max() <= 0.1 * cfg.repose_m + 1e-12  # the others are as good as now
