@@ -84,11 +84,15 @@ def level_plane(depth_m: np.ndarray, K: Intrinsics, config: FloorConfig) -> np.n
     best = int(np.argmax(count))
     if count[best] < config.min_share * len(points):
         return None
-    on = lowest_surface(points, points[inliers[:, best]], config)
-    centre = on.mean(axis=0)  # refit by least squares on the inliers
-    normal = np.linalg.svd(on - centre, full_matrices=False)[2][-1]
-    normal *= -1.0 if normal[1] > 0 else 1.0
+    centre, normal = _level_fit(lowest_surface(points, points[inliers[:, best]], config))
     return np.r_[normal, -normal @ centre]
+
+
+def _level_fit(on: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The least-squares plane of points: their centre and unit normal, turned towards the camera's up (-y)."""
+    centre = on.mean(axis=0)
+    normal = np.linalg.svd(on - centre, full_matrices=False)[2][-1]
+    return centre, normal * (-1.0 if normal[1] > 0 else 1.0)
 
 
 def lowest_surface(points: np.ndarray, dominant: np.ndarray, config: FloorConfig) -> np.ndarray:
@@ -98,9 +102,7 @@ def lowest_surface(points: np.ndarray, dominant: np.ndarray, config: FloorConfig
     floor between them: in the development scenes with handheld sweeps the floor never held a quarter of the
     lower half, the table tops were taken for it, and the chairs, stretched down to them, lay 0.1-0.25 m
     high."""
-    centre = dominant.mean(axis=0)
-    normal = np.linalg.svd(dominant - centre, full_matrices=False)[2][-1]
-    normal *= -1.0 if normal[1] > 0 else 1.0
+    centre, normal = _level_fit(dominant)
     height = (points - centre) @ normal  # above the dominant plane, towards the camera's up
     below = np.sort(height[height < -2.0 * config.inlier_m])
     if len(below) < config.lower_share * len(points):

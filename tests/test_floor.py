@@ -150,8 +150,8 @@ def test_a_wall_screen_whose_top_most_views_cut_off_keeps_the_top_the_others_see
 
 def test_a_view_over_a_wide_table_finds_the_floor_beyond_it_not_the_table_top() -> None:
     """A camera at a person's height looking down over a wide table: its top fills most of the lower half, the
-    floor shows only around it. The keyframe's floor is the lower surface, not the dominant one; with a
-    seat-sized surface below the table top instead of a floor, the table top stays."""
+    floor shows only around it. The keyframe's floor is the lower surface, not the dominant one; when no lower
+    surface is wide enough (20 m asked for), the table top stays."""
     wide = ObjectTruth(1, "dining table", (4.5, 4.5, 0.375), (1.6, 1.2, 0.75), 0.0)
     pose = looking_at((4.5, 4.5, 0.75), np.array([np.pi]), 1.4, 1.55)[0]
     r = Renderer(surfaces([wide]), K, W, H).render(pose)
