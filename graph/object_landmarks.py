@@ -99,12 +99,17 @@ class ObjectLandmarks:
                 items.append(((k, track), self.track_landmark[track]))
         return self._add(items)
 
-    def sync(self, objects: Sequence[Any]) -> tuple[int, int]:
+    def sync(self, objects: Sequence[Any], retired: Iterable[int] = ()) -> tuple[int, int]:
         """Follow a re-clustering (objects with ``id``, ``tracks``, ``n_observations``): retract the measurements
-        whose track changed object, add the newly mapped ones.
+        whose track changed object, add the newly mapped ones. ``retired``: tracks the re-clustering retired
+        into their object's anchor (``perception.track_retirement``): their measurements stay where they are
+        for good, and are no longer followed (so the assignments kept stay bounded).
 
         Returns (added, retracted) measurement counts.
         """
+        gone = set(retired)
+        for key in [key for key in self.assigned if key[1] in gone] if gone else []:
+            self._unassign(key)  # the journal forgets it; its factor stays in the graph
         mapping = {t: o.id for o in objects if o.n_observations >= self.config.landmark_min_support for t in o.tracks}
         stale = [key for key, (j, _) in self.assigned.items() if mapping.get(key[1]) != j]
         self._retract(stale)

@@ -8,14 +8,15 @@ an object, shown as an ellipsoid (mean, principal axes times ``axis_scale`` stan
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass, field, replace
 
 import hdbscan
 import numpy as np
 
 from perception.coincident import coincident_groups
-from perception.features import FeatureVector, merge_features, merge_track_runs
+from perception.features import FeatureVector, merge_features
+from perception.track_retirement import compacted
 
 log = logging.getLogger(__name__)
 
@@ -281,6 +282,8 @@ class Clusterer:
         """Where a cluster's object lies (``ellipsoid``); None: its pooled Gaussian."""
         self._fit = self._out = self._new = 0
         self._next_id = 1
+        self.retired: list[int] = []
+        """Tracks retired by the re-clusterings since the owner last took them (``ObjectMapper.take_retired``)."""
 
     def state(self) -> dict:
         """Plain state: stored feature vectors, objects, eq. 2.15 counters and the next object id."""
@@ -302,8 +305,11 @@ class Clusterer:
         self.features.extend(new)
         self._new += len(new)
 
-    def step(self, observations: Sequence[FeatureVector | None], associated: Sequence[bool]) -> bool:
-        """Count the associated observations that fit / miss the objects (eq. 2.15); re-cluster when due."""
+    def step(
+        self, observations: Sequence[FeatureVector | None], associated: Sequence[bool], live: Collection[int] = ()
+    ) -> bool:
+        """Count the associated observations that fit / miss the objects (eq. 2.15); re-cluster when due
+        (``live``: the open tracks, as for ``recluster``)."""
         for f, in_m in zip(observations, associated, strict=True):
             if f is None or not in_m:
                 continue
@@ -314,7 +320,7 @@ class Clusterer:
             self._fit += fits
             self._out += not fits
         if self._due():
-            self.recluster()
+            self.recluster(live)
             return True
         return False
 
@@ -326,9 +332,10 @@ class Clusterer:
             return len(self.features) >= self.config.min_cluster_size
         return self._fit < self._out or self._out >= self.config.outlier_threshold
 
-    def recluster(self) -> list[ObjectEllipsoid]:
-        """Cluster all stored feature vectors (bounded by ``max_features``) into objects, keeping ids."""
-        self._compact()
+    def recluster(self, live: Collection[int] = ()) -> list[ObjectEllipsoid]:
+        """Cluster all stored feature vectors (bounded by ``max_features``) into objects, keeping ids. ``live``:
+        the tracks still open (the others may be retired into their object's anchor track)."""
+        self._compact(live)
         labels = cluster_labels(self.features, self.config) if self.features else np.zeros(0, int)
         clusters = [
             [f for f, c in zip(self.features, labels, strict=True) if c == k]
@@ -356,13 +363,10 @@ class Clusterer:
         log.debug("re-clustered %d feature vectors into %d objects", len(self.features), len(self.objects))
         return self.objects
 
-    def _compact(self) -> None:
-        """Merge runs of consecutive feature vectors of each track until at most ``max_features`` remain."""
-        while len(self.features) > self.config.max_features:
-            merged = merge_track_runs(self.features, -(-len(self.features) // self.config.max_features))
-            if len(merged) == len(self.features):
-                return
-            self.features = merged
+    def _compact(self, live: Collection[int]) -> None:
+        """At most ``max_features`` vectors where pooling allows (``perception.track_retirement``)."""
+        self.features, retired = compacted(self.features, self.objects, live, self.config.max_features)
+        self.retired.extend(retired)
 
     def _carry_ids(
         self, clusters: list[list[FeatureVector]], made: dict[int, ObjectEllipsoid] | None = None

@@ -178,7 +178,7 @@ class ObjectMapper:
         pooled = [self.tracker.observe(t, f) for t, f in zip(ids, obs, strict=True)]
         self.clusterer.add([*pooled, *self.tracker.close_stale(index)])
         self._prev = _Keyframe(detections, depth_m, pose, index)
-        return self.clusterer.step(obs, [self.tracker.associated(t) for t in ids])
+        return self.clusterer.step(obs, [self.tracker.associated(t) for t in ids], self.tracker.tracks.keys())
 
     def _camera_up(self, pose: np.ndarray, plane: np.ndarray | None) -> np.ndarray | None:
         """The world's up in the camera frame of ``pose``: the floor's, else this keyframe's level plane's, else
@@ -262,7 +262,12 @@ class ObjectMapper:
         for k, (plane, pose) in list(self._floor_views.items()):
             self._floor_views[k] = (plane, np.array(poses[k], float) if _has(poses, k) else pose)
         self._floor_stale, self._floor_saved = True, None
-        return self.clusterer.recluster()
+        return self.clusterer.recluster(self.tracker.tracks.keys())
+
+    def take_retired(self) -> list[int]:
+        """The tracks the re-clusterings retired since the last call (``perception.track_retirement``)."""
+        out, self.clusterer.retired = self.clusterer.retired, []
+        return out
 
     def state(self) -> dict:
         """Plain state: tracker, clusterer, the previous keyframe (detections, depth, pose), counters, store
@@ -314,7 +319,7 @@ class ObjectMapper:
     def finish(self) -> list[ObjectEllipsoid]:
         """End of sequence: emit every open track window and re-cluster once more."""
         self.clusterer.add(self.tracker.flush())
-        return self.clusterer.recluster()
+        return self.clusterer.recluster(self.tracker.tracks.keys())
 
     @property
     def objects(self) -> list[ObjectEllipsoid]:

@@ -346,7 +346,7 @@ class SlamCore(MapViews):
             t0 = time.perf_counter()
             self.landmarks.observe(result.keyframe, result.observations)
             if result.reclustered or result.reposed:
-                self.landmarks.sync(result.objects)
+                self.landmarks.sync(result.objects, result.retired)
             self.timings["landmarks"] = time.perf_counter() - t0
         self.object_map_version += int(result.reclustered) + int(result.reposed)
         self.objects_view = result.objects
@@ -374,7 +374,7 @@ class SlamCore(MapViews):
             self.objects.finish()
             self.objects_view = list(self.objects.objects)
             if self.landmarks is not None:
-                self.landmarks.sync(self.objects_view)
+                self.landmarks.sync(self.objects_view, self.objects.take_retired())
             self.object_map_version += 1
 
     def close(self) -> None:

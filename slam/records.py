@@ -35,6 +35,7 @@ class KeyframeObjects:
     reclustered: bool = False
     reposed: bool = False
     objects: list[ObjectEllipsoid] = field(default_factory=list)  # the object map after this keyframe
+    retired: tuple[int, ...] = ()  # tracks retired into their objects' anchors (their measurements settled)
     timings: dict[str, float] = field(default_factory=dict)
 
 

@@ -66,6 +66,7 @@ def map_objects(
         (t, to_body[:3, :3] @ p + to_body[:3, 3], extent) for t, p, extent in mapper.last_observations
     ]
     result.objects = list(mapper.objects)  # the mapper may be on a later keyframe when this is applied
+    result.retired = tuple(mapper.take_retired())
     result.timings["objects"] = time.perf_counter() - t0
     return result
 

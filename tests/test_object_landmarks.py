@@ -226,3 +226,22 @@ def test_a_row_log_keeps_its_rows_as_it_grows_and_hands_out_read_only_views():
         rows[0, 0] = 1
     again = RowLog((4,), np.int64, rows)
     assert np.array_equal(again.rows(), rows) and len(again) == 40
+
+
+def test_retired_tracks_keep_their_measurements_in_the_graph_and_leave_the_assignments():
+    """A re-clustering that retired tracks 2 and 3 into object 1's anchor track 1 no longer names them: their
+    measurements stay on landmark 1 (not retracted as a track that left its object would be) and are no
+    longer followed, so the assignments kept do not grow with the tracks a long run makes."""
+    g, poses = _chain(6)
+    a = np.array([0.5, 0.2, 2.0])
+    lm = ObjectLandmarks(g, LandmarkSettings(landmark_sigma_m=0.01, landmark_huber_k=None, landmark_min_support=1))
+    for k in range(6):
+        lm.observe(k, [(1 + k // 2, _seen(poses[k], a), 0.0)])  # tracks 1, 2, 3: two keyframes each
+    assert lm.sync([_obj(1, {1, 2, 3})]) == (6, 0)
+    factors, removed = g.num_factors, set(g.books.removed)
+    assert lm.sync([_obj(1, {1})], retired=[2, 3]) == (0, 0)
+    assert set(lm.assigned) == {(0, 1), (1, 1)} and set(g.books.removed) == removed and g.num_factors == factors
+    assert replayed(lm.journal.rows()) == lm.assigned
+    lm.sync([_obj(1, {1})])  # later re-clusterings leave them alone
+    assert set(g.books.removed) == removed
+    np.testing.assert_allclose(g.landmark(1), a, atol=1e-6)
