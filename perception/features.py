@@ -327,14 +327,8 @@ def merge_track_runs(features: Sequence[FeatureVector], run: int) -> list[Featur
     group = group.ravel()
     n = np.array([features[i].n for i in order], float)
     mu = np.array([features[i].mean for i in order])
-    second = np.array([features[i].cov for i in order]) + mu[:, :, None] * mu[:, None, :]
     g = int(group.max()) + 1
-    s0 = np.bincount(group, n, minlength=g)
-    s1 = np.stack([np.bincount(group, n * mu[:, a], minlength=g) for a in range(3)], axis=1)
-    s2 = np.zeros((g, 3, 3))
-    np.add.at(s2, group, n[:, None, None] * second)
-    mean = s1 / s0[:, None]
-    cov = s2 / s0[:, None, None] - mean[:, :, None] * mean[:, None, :]
+    s0, mean, cov = _pools(group, n, mu, np.array([features[i].cov for i in order]), g)
     first = np.unique(group, return_index=True)[1]
     sources: list[list[int]] = [[] for _ in range(g)]
     for k, i in zip(group, order, strict=True):
@@ -350,3 +344,40 @@ def merge_track_runs(features: Sequence[FeatureVector], run: int) -> list[Featur
         )
         for k in range(g)
     ]
+
+
+def _pools(
+    group: np.ndarray, n: np.ndarray, mu: np.ndarray, cov: np.ndarray, g: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Point counts, means and covariances of ``g`` pooled Gaussians: the Gaussian of row i (``n[i]`` points,
+    ``mu[i]``, ``cov[i]``) goes into pool ``group[i]`` (moment sums; an empty pool's mean and cov are nan)."""
+    s0 = np.bincount(group, n, minlength=g)
+    s1 = np.stack([np.bincount(group, n * mu[:, a], minlength=g) for a in range(3)], axis=1)
+    s2 = np.zeros((g, 3, 3))
+    np.add.at(s2, group, n[:, None, None] * (cov + mu[:, :, None] * mu[:, None, :]))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = s1 / s0[:, None]
+        return s0, mean, s2 / s0[:, None, None] - mean[:, :, None] * mean[:, None, :]
+
+
+def repooled(
+    features: Sequence[FeatureVector], means: np.ndarray, covs: np.ndarray, n: np.ndarray
+) -> list[FeatureVector]:
+    """``features`` pooled again from their sources, given each source's Gaussian (``means[i]``, ``covs[i]``,
+    ``n[i]`` points of ``sources`` id i): what ``merge_features`` of the sources gives, in one pass of moment
+    sums over every source (a map's re-placement pools tens of thousands). A single source is taken as it is;
+    a vector without sources (from a snapshot before the observation store) stays as it was."""
+    counts = [len(f.sources) for f in features]
+    owner = np.repeat(np.arange(len(features)), counts)
+    src = np.fromiter((i for f in features for i in f.sources), np.int64, len(owner))
+    s0, mean, cov = _pools(owner, np.asarray(n, float)[src], means[src], covs[src], len(features))
+    out = []
+    for k, (f, c) in enumerate(zip(features, counts, strict=True)):
+        if c == 0:
+            out.append(f)
+        elif c == 1:
+            i = f.sources[0]
+            out.append(FeatureVector(means[i], covs[i], int(n[i]), f.label, f.track_id, f.sources))
+        else:
+            out.append(FeatureVector(mean[k], cov[k], int(s0[k]), f.label, f.track_id, f.sources))
+    return out

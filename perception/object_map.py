@@ -16,7 +16,7 @@ from perception.features import (
     FeatureVector,
     depth_segment,
     hidden_by_twin,
-    merge_features,
+    repooled,
     transform_feature,
 )
 from perception.floor import (
@@ -246,17 +246,10 @@ class ObjectMapper:
         means = np.einsum("nij,nj->ni", R, np.stack([f.mean for f in self._obs_local])) + t
         covs = np.einsum("nij,njk,nlk->nil", R, np.stack([f.cov for f in self._obs_local]), R)
 
-        def world(f: FeatureVector) -> FeatureVector:
-            if not f.sources:  # from a snapshot of a version without the store: left as it was
-                return f
-            parts = [
-                FeatureVector(means[i], covs[i], self._obs_local[i].n, f.label, f.track_id, (i,)) for i in f.sources
-            ]
-            return parts[0] if len(parts) == 1 else merge_features(parts)
-
-        self.clusterer.features = [world(f) for f in self.clusterer.features]
+        n = np.array([f.n for f in self._obs_local], float)
+        self.clusterer.features = repooled(self.clusterer.features, means, covs, n)
         for track in self.tracker.tracks.values():
-            track.window = [world(f) for f in track.window]
+            track.window = repooled(track.window, means, covs, n)
         if self._prev is not None and self._prev.index >= 0:
             self._prev.pose = np.asarray(poses[self._prev.index])
         for k, (plane, pose) in list(self._floor_views.items()):

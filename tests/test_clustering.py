@@ -15,7 +15,7 @@ from perception.clustering import (
     merge_overlapping,
     robust_gaussian,
 )
-from perception.features import FeatureVector, merge_features, merge_track_runs
+from perception.features import FeatureVector, merge_features, merge_track_runs, repooled
 
 
 def _feature(mean, var, label: str = "chair", track: int = 0, n: int = 100) -> FeatureVector:
@@ -86,6 +86,27 @@ def test_pooled_moments_of_merged_track_runs_equal_merge_features() -> None:
         np.testing.assert_allclose(got.mean, ref.mean)
         np.testing.assert_allclose(got.cov, ref.cov, atol=1e-12)
         assert got.n == ref.n
+
+
+def test_features_repooled_from_moved_sources_equal_merge_features_of_them() -> None:
+    """A re-placement pools every vector again from its sources in one pass (``repooled``): the same Gaussian
+    as ``merge_features`` of the sources, a single source as it is, a vector without sources left alone."""
+    rng = np.random.default_rng(4)
+    m = 30
+    means = rng.normal(0, 3, (m, 3))
+    covs = np.stack([a @ a.T * 1e-3 for a in rng.normal(size=(m, 3, 3))])
+    n = rng.integers(20, 400, m)
+    srcs = [tuple(int(i) for i in rng.choice(m, k, replace=False)) for k in (1, 2, 5, 9)]
+    feats = [FeatureVector(np.zeros(3), np.eye(3), 1, "cup", t, s) for t, s in enumerate(srcs)]
+    legacy = FeatureVector(np.ones(3), np.eye(3), 7, "cup", 9, ())
+    got = repooled([*feats, legacy], means, covs, n)
+    assert got[-1] is legacy
+    for f, g in zip(feats, got, strict=False):
+        ref = merge_features([FeatureVector(means[i], covs[i], int(n[i]), "cup", f.track_id, (i,)) for i in f.sources])
+        np.testing.assert_allclose(g.mean, ref.mean, atol=1e-12)
+        np.testing.assert_allclose(g.cov, ref.cov, atol=1e-12)
+        assert (g.n, g.sources, g.track_id, g.label) == (ref.n, f.sources, f.track_id, "cup")
+    np.testing.assert_array_equal(got[0].mean, means[srcs[0][0]])  # one source: exactly its own
 
 
 def test_reclustering_follows_eq_2_15_and_the_outlier_count() -> None:
