@@ -133,6 +133,11 @@ class KeyframeArchive:
     def get(self, index: int) -> KeyframeEntry | None:
         return self[index] if index in self._position else None
 
+    def timestamp(self, index: int) -> float | None:
+        """The time of keyframe ``index``; None when it is not archived."""
+        i = self._position.get(index)
+        return None if i is None else self.stubs[i][1]
+
     def timestamps(self) -> Iterator[tuple[int, float]]:
         """(index, time) of every keyframe, oldest first; no features read."""
         return ((k, t) for k, t, _ in self.stubs)

@@ -14,20 +14,25 @@ from loops.settings import LoopSettings
 
 
 def nearby(entry: KeyframeEntry, keyframes: KeyframeArchive, poses: np.ndarray, settings: LoopSettings) -> list[int]:
-    """Old keyframes whose estimate (in ``poses``) lies near the new one's (geometric candidates)."""
+    """Old keyframes whose estimate (in ``poses``) lies near the new one's (geometric candidates): the archived
+    ones at least ``min_gap_s`` older, nearest first. Only those within ``proximity_m`` are looked at one by
+    one, so the cost per keyframe stays a vector operation as the map grows."""
     c = settings
-    old = [k for k, t in keyframes.timestamps() if t <= entry.timestamp - c.min_gap_s]
-    if not old or entry.index >= len(poses):
+    if entry.index >= len(poses):
         return []
     here = poses[entry.index]
-    dist = np.linalg.norm(poses[old, :3, 3] - here[:3, 3], axis=1)
+    dist = np.linalg.norm(poses[:, :3, 3] - here[:3, 3], axis=1)
+    within = np.flatnonzero(dist <= c.proximity_m)
     near: list[int] = []
-    for i in np.argsort(dist):
-        if dist[i] > c.proximity_m or len(near) >= c.proximity_k:
+    for k in within[np.argsort(dist[within], kind="stable")].tolist():
+        if len(near) >= c.proximity_k:
             break
-        _, angle = motion_magnitude(relative(poses[old[i]], here))
+        t = keyframes.timestamp(k)
+        if t is None or t > entry.timestamp - c.min_gap_s:
+            continue
+        _, angle = motion_magnitude(relative(poses[k], here))
         if math.degrees(angle) <= c.proximity_deg:
-            near.append(old[i])
+            near.append(k)
     return near
 
 

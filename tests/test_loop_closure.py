@@ -93,3 +93,25 @@ def test_an_accepted_loop_that_the_graph_contradicts_is_retracted(room):
     assert acceptance.records[0].accepted is False and acceptance.records[0].reason == "retracted_inconsistent"
     assert factor not in acceptance.accepted and graph.num_factors == factors - 1
     np.testing.assert_allclose(graph.pose(2), gt[20], atol=1e-3)
+
+
+def test_proximity_candidates_are_the_nearest_old_archived_keyframes_within_reach():
+    """``nearby``: archived keyframes at least ``min_gap_s`` older than the new one, within ``proximity_m`` and
+    ``proximity_deg`` of its estimate, nearest first, at most ``proximity_k``."""
+    from scipy.spatial.transform import Rotation
+
+    from loops.archive import ColdLog, KeyframeArchive
+    from loops.candidates import nearby
+
+    settings = LoopSettings(proximity_m=0.3, proximity_deg=25.0, proximity_k=2, min_gap_s=5.0)
+    xs = [0.0, 0.1, 0.05, 0.25, 0.2, 1.0, 0.02, 0.0]  # keyframe k at x = xs[k], time k seconds
+    poses = np.stack([np.eye(4)] * len(xs))
+    poses[:, 0, 3] = xs
+    poses[4, :3, :3] = Rotation.from_euler("z", 40, degrees=True).as_matrix()  # near but turned away
+    kept = [k for k in range(len(xs)) if k != 2]  # keyframe 2 not archived
+    archive = KeyframeArchive([(k, float(k), k) for k in kept], ColdLog([None] * len(kept)))
+    new = KeyframeEntry(7, 7.0, 7, None)
+    assert nearby(new, archive, poses, settings) == [0, 1]  # 2: not archived, 6 and 7: too recent
+    far = KeyframeEntry(7, 30.0, 7, None)
+    assert nearby(far, archive, poses, settings) == [0, 7]  # the nearest two (the new one is excluded by time only)
+    assert nearby(far, archive, poses, settings.model_copy(update={"proximity_k": 9})) == [0, 7, 6, 1, 3]
