@@ -107,9 +107,9 @@ class ObjectLandmarks:
 
         Returns (added, retracted) measurement counts.
         """
-        gone = set(retired)
-        for key in [key for key in self.assigned if key[1] in gone] if gone else []:
-            self._unassign(key)  # the journal forgets it; its factor stays in the graph
+        if gone := set(retired):
+            for key in [key for key in self.assigned if key[1] in gone]:
+                self._unassign(key)  # the journal forgets it; its factor stays in the graph
         mapping = {t: o.id for o in objects if o.n_observations >= self.config.landmark_min_support for t in o.tracks}
         stale = [key for key, (j, _) in self.assigned.items() if mapping.get(key[1]) != j]
         self._retract(stale)

@@ -138,10 +138,6 @@ class KeyframeArchive:
         i = self._position.get(index)
         return None if i is None else self.stubs[i][1]
 
-    def timestamps(self) -> Iterator[tuple[int, float]]:
-        """(index, time) of every keyframe, oldest first; no features read."""
-        return ((k, t) for k, t, _ in self.stubs)
-
     def entries(self) -> list[KeyframeEntry]:
         """Every keyframe with its features (all read back: for a whole-state snapshot)."""
         return [self[k] for k, _, _ in self.stubs]
