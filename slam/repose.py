@@ -33,9 +33,8 @@ def repose_due(
     idx = np.unique(np.r_[np.arange(0, n, max(1, n // 100)), np.arange(max(0, n - 10), n)])
     now = np.stack([graph.pose(int(k)) for k in idx])
     used = np.stack([object_poses[k] for k in idx])
-    moved = np.linalg.norm(now[:, :3, 3] - used[:, :3, 3], axis=1).max()
-    turned = np.degrees(rotation_angles_between(now[:, :3, :3], used[:, :3, :3])).max()
-    if moved <= cfg.repose_m and turned <= cfg.repose_deg:
+    moved, turned = _offsets(now, used)
+    if moved.max() <= cfg.repose_m and turned.max() <= cfg.repose_deg:
         return None
     placed = object_poses.rows() if isinstance(object_poses, PlacedPoses) else np.stack(list(object_poses))
     return moved_only(graph.poses()[:n], placed, cfg)
@@ -49,6 +48,12 @@ def moved_only(now: np.ndarray, placed: np.ndarray, cfg: ObjectSettings) -> np.n
     keyframe's pose again (``slam.pose_log.PlacedPoses``), work that grew with the map."""
     if len(now) == 0:
         return now
-    moved = np.linalg.norm(now[:, :3, 3] - placed[:, :3, 3], axis=1) >= KEEP_SHARE * cfg.repose_m
-    turned = np.degrees(rotation_angles_between(now[:, :3, :3], placed[:, :3, :3])) >= KEEP_SHARE * cfg.repose_deg
-    return np.where((moved | turned)[:, None, None], now, placed)
+    moved, turned = _offsets(now, placed)
+    keep = (moved < KEEP_SHARE * cfg.repose_m) & (turned < KEEP_SHARE * cfg.repose_deg)
+    return np.where(keep[:, None, None], placed, now)
+
+
+def _offsets(now: np.ndarray, placed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """How far each pose of ``now`` lies from its ``placed`` one: metres and degrees."""
+    moved = np.linalg.norm(now[:, :3, 3] - placed[:, :3, 3], axis=1)
+    return moved, np.degrees(rotation_angles_between(now[:, :3, :3], placed[:, :3, :3]))
