@@ -176,7 +176,7 @@ def on_floor(
     u = floor.up
     means, covs, weights = views
     bottom = float(u @ mean) - np.sqrt(3.0 * max(float(u @ cov @ u), 0.0)) - floor.height
-    top = _weighted_quantile(view_ends(means, covs, u)[0], np.asarray(weights, float), 0.5) - floor.height
+    top = weighted_quantile(view_ends(means, covs, u)[0], np.asarray(weights, float), 0.5) - floor.height
     if not -config.agree_m <= bottom <= config.max_gap_m or top <= 0.0:
         return None
     return with_span(mean, cov, u, floor.height, floor.height + top)
@@ -192,7 +192,7 @@ def with_span(
     return new_mean, P @ cov @ P + (top - bottom) ** 2 / 12.0 * np.outer(up, up)
 
 
-def _weighted_quantile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
+def weighted_quantile(values: np.ndarray, weights: np.ndarray, q: float) -> float:
     """The value below which the share ``q`` of the ``weights`` lies."""
     order = np.argsort(values)
     cumulative = np.cumsum(weights[order] / weights.sum())
@@ -219,8 +219,8 @@ def vertical_span(
     for k, (heights, fallback) in enumerate(zip(view_ends(means, covs, up), (0.9, 0.1), strict=True)):
         seen = ~np.asarray(cut, bool)[:, k]
         if seen.sum() >= min_views:
-            ends.append(_weighted_quantile(heights[seen], w[seen], 0.5))
+            ends.append(weighted_quantile(heights[seen], w[seen], 0.5))
         else:
-            ends.append(_weighted_quantile(heights, w, fallback))
+            ends.append(weighted_quantile(heights, w, fallback))
     top, bottom = ends
     return (bottom, top) if top > bottom else None

@@ -29,6 +29,7 @@ from perception.floor import (
     with_span,
     world_floor_view,
 )
+from perception.footprint import LARGE_CLASSES, union_footprint
 from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
 from perception.tracks import Tracker
@@ -199,12 +200,15 @@ class ObjectMapper:
         return self._floor
 
     def _locate(self, members: Sequence[FeatureVector]) -> tuple[np.ndarray, np.ndarray] | None:
-        """An object from its views: robust to the few that are another object's (``robust_gaussian``), and
-        reaching down to the floor when it stands on it (``perception.floor.on_floor``)."""
+        """An object from its views: robust to the few that are another object's (``robust_gaussian``), as wide
+        as its views together when it is larger than a view (``perception.footprint``), and reaching down to the
+        floor when it stands on it (``perception.floor.on_floor``)."""
         n = np.array([f.n for f in members], float)
         means, covs = np.stack([f.mean for f in members]), np.stack([f.cov for f in members])
         mean, cov = robust_gaussian(means, covs, n)
         floor = self.floor
+        if floor is not None and members[0].label in LARGE_CLASSES:
+            mean, cov = union_footprint(mean, cov, (means, covs, n), floor.up)
         if floor is not None and members[0].label in FLOOR_CLASSES:
             return on_floor(mean, cov, (means, covs, n), floor, self.floor_config) or (mean, cov)
         if floor is not None and all(f.sources for f in members):

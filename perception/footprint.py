@@ -1,0 +1,70 @@
+"""The footprint of a large object seen in parts: the union of its views' extents across the floor (issue 24).
+
+A dining table, a couch, a bed or a screen is wider than most views show: the image border cuts it, chairs and
+clutter hide parts, and a walk past it sees one end for many keyframes and the other for a few. Pooled, its
+views' Gaussians centre it on the part seen most and stretch it along the line of sight, not along the object
+(development scenes 0-15: tables lay 0.21 m off in the median, along their long side). Here the extent along
+each of the object's horizontal axes (those of its views together: their Gaussians' mixture, whose spread runs
+along the object) is where its views' extents end, ``sqrt(3)`` standard deviations from their centres as for a
+uniform extent, with an outer share of the weight at either end left out as views of something else
+(``union_footprint``): ``UNION_SHARES``, a small one along the wider axis, which views see in parts, a larger one
+across it, which most views see whole, so that their ends scatter about it. Only the classes that are larger
+than a view (``LARGE_CLASSES``, a size prior) are measured so: chairs and plants in a row have views that caught
+their neighbour, and the union of those is the row (development scenes: chair IoU 0.69 -> 0.60 when every class
+was measured so).
+
+Pure computation, no I/O.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from perception.floor import view_ends, weighted_quantile
+
+LARGE_CLASSES: frozenset[str] = frozenset({"dining table", "couch", "bed", "tv"})
+"""COCO classes whose instances are usually wider than a metre and seen in parts."""
+
+UNION_SHARES: tuple[float, float] = (0.1, 0.3)
+"""Share of the views' weight left out at each end of the wider and of the narrower horizontal axis. Development
+scenes 0-15, large objects' median IoU / centroid error: pooled 0.524 / 0.217 m; (0.1, 0.1) 0.560 / 0.156 m
+with the axes of the pooled Gaussian; with the mixture's axes (0.1, 0.3) 0.605 / 0.143 m, (0.05-0.1, 0.3-0.4)
+within 0.01 of it, (0.15, ...) and (..., 0.2) lower."""
+
+
+def horizontal_axes(cov: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """The principal axes (2, 3) of ``cov`` across the unit vector ``up``, the wider first."""
+    helper = np.eye(3)[int(np.argmin(np.abs(up)))]
+    e1 = np.cross(up, helper)
+    e1 /= np.linalg.norm(e1)
+    basis = np.stack([e1, np.cross(up, e1)], axis=1)  # (3, 2)
+    _, vecs = np.linalg.eigh(basis.T @ cov @ basis)
+    return (basis @ vecs[:, ::-1]).T
+
+
+def union_footprint(
+    mean: np.ndarray,
+    cov: np.ndarray,
+    views: tuple[np.ndarray, np.ndarray, np.ndarray],
+    up: np.ndarray,
+    shares: tuple[float, float] = UNION_SHARES,
+) -> tuple[np.ndarray, np.ndarray]:
+    """An object's Gaussian ``mean``, ``cov`` (world frame) with its extent across ``up`` replaced by the union
+    of its ``views``' extents ((N, 3) means, (N, 3, 3) covariances, (N,) weights) along the horizontal axes of
+    their mixture: from
+    the weighted ``share`` quantile of the views' near ends to the ``1 - share`` quantile of their far ends,
+    uniform in between, with the wider axis's and the narrower's ``shares``.
+    Along ``up`` the Gaussian stays (cross terms with ``up`` dropped)."""
+    means, covs, weights = views
+    w = np.asarray(weights, float)
+    share_of = w / w.sum()
+    spread = means - share_of @ means
+    mixture = np.einsum("n,nij->ij", share_of, covs) + (spread.T * share_of) @ spread
+    U = np.outer(up, up)
+    new_mean, new_cov = np.asarray(mean, float).copy(), U @ cov @ U
+    for axis, share in zip(horizontal_axes(mixture, up), shares, strict=True):
+        far, near = view_ends(means, covs, axis)
+        lo, hi = weighted_quantile(near, w, share), weighted_quantile(far, w, 1.0 - share)
+        new_mean += ((lo + hi) / 2.0 - float(axis @ new_mean)) * axis
+        new_cov += (hi - lo) ** 2 / 12.0 * np.outer(axis, axis)
+    return new_mean, new_cov
