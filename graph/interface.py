@@ -158,6 +158,11 @@ class Graph(Protocol):
         """Bring the estimate up to date with any work running in the background (e.g. before final outputs)."""
         ...
 
+    def polish(self) -> bool:
+        """Without blocking for long (no frame is coming): move the estimate towards the batch optimum of
+        everything added so far, as ``flush`` does in one go; True when the estimate moved."""
+        ...
+
     def close(self) -> None:
         """Stop what the graph runs in the background (its child process, if any)."""
         ...

@@ -123,6 +123,11 @@ class PoseGraph(Keyframes, Landmarks):
         """Nothing to wait for: every factor is in this one iSAM2 (its estimate stays iSAM2's; ``optimum`` gives
         the batch optimum without changing the graph). For the ``Graph`` interface."""
 
+    def polish(self) -> bool:
+        """Nothing to move: the estimate stays iSAM2's (``optimum`` gives the batch optimum without changing the
+        graph). For the ``Graph`` interface."""
+        return False
+
     def close(self) -> None:
         """Nothing to stop (no child process). For the ``Graph`` interface."""
 

@@ -19,7 +19,8 @@ How (the foreground, ``WindowedGraph``):
   that has come back replaces the fixed past at the next roll, which rebuilds the window there (keyframes
   added since the solve moved rigidly with the newest solved one); so the window is rebuilt once per
   ``window_step`` keyframes, whatever the loops. A child that dies is restarted and replays the whole history.
-- **Flush** (the end of a run) waits for the whole graph's batch optimum and re-anchors the window there.
+- **Flush** (the end of a run) waits for the whole graph's batch optimum and re-anchors the window there;
+  **polish** (a pause in a live stream) does the same without waiting.
 
 Per-keyframe work is bounded by the window, not by the map; a loop closure's correction of the whole map arrives
 a solve later. Until the first roll the child is never started and the window is the whole graph, update for
@@ -36,7 +37,7 @@ import numpy as np
 
 from graph.books import Books, UpdateResult
 from graph.errors import SolverError
-from graph.factors import FactorRecord, from_columns
+from graph.factors import FactorRecord
 from graph.keyframes import Keyframes
 from graph.landmarks import Landmarks
 from graph.pose_graph import PoseGraph
@@ -48,13 +49,12 @@ from graph.window_factors import (
     FactorIndex,
     Localized,
     anchored,
-    fused_owners,
     landmarks_of,
     localize,
     localized_factors,
     window_factors,
 )
-from graph.window_state import joined, window_parts
+from graph.window_state import joined, restore_rolled, window_parts
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +86,8 @@ class WindowedGraph(Keyframes, Landmarks):
         self.child_starts = 0  # whole-graph child processes started
         self.global_solves = 0  # global estimates applied to the window
         self.rebuilt = False  # until the window is first rebuilt it is the whole graph, update for update
+        self._polish_asked: tuple[int, int] | None = None  # (factors, removals) at ``polish``'s last request
+        self._polished: tuple[int, int] | None = None  # (factors, removals) at its last re-anchoring
 
     # ------------------------------------------------------------ solver
 
@@ -312,8 +314,34 @@ class WindowedGraph(Keyframes, Landmarks):
         if solved is not None and self._rebuild(self.start, *self._anchored(solved)):
             self.global_solves += 1
 
+    def polish(self) -> bool:
+        """``flush`` without waiting, once per change of the graph: solved here while the window is the whole
+        graph (bounded); after a roll, asked of the child, and the window re-anchored by a later call once it has
+        come back. True when the window moved."""
+        mark = (len(self.books.factors), len(self.books.removed))
+        if not self.num_keyframes or mark == self._polished:
+            return False
+        if self.start == 0:
+            poses, landmarks = self.local.optimum()
+            self._polished = mark
+            return self._rebuild(0, poses, {**self._frozen, **landmarks})
+        child = self._running_child()
+        if child is None or mark != self._polish_asked:
+            if child is not None:
+                child.request(exact=True)
+                self._polish_asked = mark
+            return False
+        solved = None if child.outstanding else child.receive(0.0)
+        if solved is None:
+            return False
+        self._polished = mark
+        if not self._rebuild(self.start, *self._anchored(solved)):
+            return False
+        self.global_solves += 1
+        return True
+
     def wait_idle(self, timeout: float = 60.0) -> bool:
-        """Wait until the whole-graph child has no solve outstanding (its estimate left for the next roll)."""
+        """Wait until the whole-graph child has no solve outstanding (its estimate left for the next take)."""
         return self._global is None or self._global.wait_idle(timeout)
 
     @property
@@ -350,11 +378,9 @@ class WindowedGraph(Keyframes, Landmarks):
     def from_state(cls, state: dict[str, Any], settings: GraphSettings | None = None) -> WindowedGraph:
         """The graph of ``state()`` (or of ``PoseGraph.state()``), its estimate exactly as saved: the window's
         iSAM2 replayed update for update (a window that never rolled is the whole graph), the fixed keyframes
-        and frozen landmarks as they were, and the whole graph replayed in a new child.
-
-        The noise models and iSAM2 parameters are the saved ones (the replay needs them); the window's size is
-        ``settings``' when given (else the saved one, else the default).
-        """
+        and frozen landmarks as they were, and the whole graph replayed in a new child. The noise models and
+        iSAM2 parameters are the saved ones (the replay needs them); the window's size ``settings``' when
+        given (else the saved one, else the default)."""
         saved = state.get("window")
         rebuilt = saved is not None and "local" in saved
         local = PoseGraph.from_state(saved["local"] if saved is not None and rebuilt else state)
@@ -368,30 +394,7 @@ class WindowedGraph(Keyframes, Landmarks):
             graph._local_pairs = list(graph._to_local.items())
             graph._index.add(graph.factors, 0)
             return graph
-        log_entries = [tuple(e) for e in state["updates"]]
-        factors = from_columns(state["factors"])
-        removed = {int(i) for i in saved["removed"]}
-        pending = from_columns(state["pending"])
-        graph.books = Books(
-            factors=factors,
-            initial=list(state["initial"]),
-            landmark_initial=list(state["landmark_initial"]),
-            log=log_entries,
-            landmarks={int(j): i for i, j in enumerate(saved["landmarks"])},
-            pending={int(j): [r for r in pending if r.b == j] for j in state["pending_landmarks"]},
-            removed=removed,
-            num_keyframes=sum(e[1] for e in log_entries),
-            num_factors=len(factors) - len(removed),
-            updates=len(log_entries),
-        )
-        graph._index.add(graph.factors, 0)
-        graph.start, graph._fixed = int(saved["start"]), np.asarray(saved["fixed"], float)
-        graph._frozen = {
-            int(j): np.asarray(p, float) for j, p in zip(saved["frozen"], saved["frozen_estimates"], strict=True)
-        }
-        graph._to_local = {int(i): int(li) for i, li in saved["to_local"]}
-        graph._local_pairs = list(graph._to_local.items())
-        graph._fused = fused_owners(graph._to_local)
+        restore_rolled(graph, state, saved)
         if graph.start:
             graph._running_child()
         return graph

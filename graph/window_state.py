@@ -14,8 +14,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from graph.books import joined_columns
+from graph.books import Books, joined_columns
+from graph.factors import from_columns
 from graph.settings import noise_state, window_state
+from graph.window_factors import fused_owners
 
 if TYPE_CHECKING:
     from graph.window import WindowedGraph
@@ -75,3 +77,32 @@ def joined(small: dict[str, Any], logs: dict[str, Any], records: bool = False) -
         window["to_local"] = np.array(pairs, np.int64).reshape(-1, 2)
     state["window"] = window
     return state
+
+
+def restore_rolled(graph: WindowedGraph, state: dict[str, Any], saved: dict[str, Any]) -> None:
+    """The books, fixed past, frozen landmarks and factor map of a rolled window (``state()``, its ``window``
+    part ``saved``) into ``graph``, whose window's own iSAM2 is already replayed."""
+    log_entries = [tuple(e) for e in state["updates"]]
+    factors = from_columns(state["factors"])
+    removed = {int(i) for i in saved["removed"]}
+    pending = from_columns(state["pending"])
+    graph.books = Books(
+        factors=factors,
+        initial=list(state["initial"]),
+        landmark_initial=list(state["landmark_initial"]),
+        log=log_entries,
+        landmarks={int(j): i for i, j in enumerate(saved["landmarks"])},
+        pending={int(j): [r for r in pending if r.b == j] for j in state["pending_landmarks"]},
+        removed=removed,
+        num_keyframes=sum(e[1] for e in log_entries),
+        num_factors=len(factors) - len(removed),
+        updates=len(log_entries),
+    )
+    graph._index.add(graph.factors, 0)
+    graph.start, graph._fixed = int(saved["start"]), np.asarray(saved["fixed"], float)
+    graph._frozen = {
+        int(j): np.asarray(p, float) for j, p in zip(saved["frozen"], saved["frozen_estimates"], strict=True)
+    }
+    graph._to_local = {int(i): int(li) for i, li in saved["to_local"]}
+    graph._local_pairs = list(graph._to_local.items())
+    graph._fused = fused_owners(graph._to_local)

@@ -86,6 +86,14 @@ class IngestSettings(Limits):
     max_age_ms: float = Field(
         100.0, gt=0, allow_inf_nan=False, description="live: a frame older than this is skipped for a newer one"
     )
+    polish_after_s: float = Field(
+        1.0,
+        ge=0,
+        allow_inf_nan=False,
+        description="live: no frame for this long and every keyframe mapped (the robot paused, the stream ended): "
+        "the graph is moved towards the batch optimum of all it holds, as `run` does at the end of a sequence "
+        "(in the window while it holds the whole graph, else by the child's solve, not waited for); 0: never",
+    )
 
 
 class PersistenceSettings(BaseModel):

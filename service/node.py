@@ -70,6 +70,7 @@ class ServiceNode(NodeQueries):
         self.labels = LabelVocabulary(self.limits.labels, self.limits.extra_labels, self.limits.max_detections)
         self.gate = Gate(self.limits, self.stats)
         self.replies = self._replies(self.limits)
+        self._last_frame_at = time.monotonic()  # when the worker last took a frame
         self._saved_completed = 0  # frames completed (processed, rejected, failed, dropped) in the newest snapshot
         self.events = MapEvents()
         self.status_sections: dict[str, Callable[[], Any]] = {}  # more parts of ``status`` (the ROS 2 bridge's)
@@ -216,10 +217,11 @@ class ServiceNode(NodeQueries):
             self.saves.answer()
             taken = self.intake.next(timeout=0.1)
             if taken is None:
-                if self.core.live and self._catch_up(idle=True):  # no frame: map what is ready now
+                if self.core.live and (self._catch_up(idle=True) or self._polish()):  # no frame: map what is ready
                     self._publish_summary()
                 continue
             frame, received = taken
+            self._last_frame_at = time.monotonic()
             try:
                 self._process(frame, received)
             except Exception:  # the worker must survive anything a frame can trigger
@@ -227,6 +229,16 @@ class ServiceNode(NodeQueries):
                 self.stats.count_error("internal")
             finally:
                 self._completed_one()
+
+    def _polish(self) -> bool:
+        """Live, no frame for ``ingest.polish_after_s`` and every keyframe mapped: the graph moved towards its
+        batch optimum (``Graph.polish``: once per change of the graph, never waiting for the child), the map a
+        paused robot or an ended stream leaves. True when the estimate moved."""
+        after = self.limits.polish_after_s
+        if not after or self.core.pending or time.monotonic() - self._last_frame_at < after:
+            return False
+        with self._lock:
+            return self.core.graph.polish()
 
     def _completed_one(self) -> None:
         with self._frame_done:

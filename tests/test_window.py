@@ -405,3 +405,37 @@ def test_a_landmark_seen_from_many_fixed_keyframes_is_one_prior_in_the_window_an
 def _seen_from(T: np.ndarray, p: np.ndarray) -> np.ndarray:
     Ti = np.linalg.inv(T)
     return Ti[:3, :3] @ p + Ti[:3, 3]
+
+
+def test_polish_moves_a_window_that_is_the_whole_graph_to_its_batch_optimum_once_per_change(windowed):
+    full, window = PoseGraph(), windowed(400, 100)
+    _explore(full, 300)
+    _explore(window, 300)
+    optimum = _optimum(full)
+    assert np.abs(window.poses() - optimum).max() > 1e-3  # iSAM2 stops short of it
+    assert window.polish()
+    assert np.abs(window.poses() - optimum).max() < 1e-4 and window.child is None
+    assert not window.polish()  # nothing added since: nothing to do
+    window.add_keyframe(np.eye(4), 0.01, 0.01)
+    assert window.polish()
+
+
+def test_polish_after_a_roll_asks_the_child_and_re_anchors_without_waiting(windowed):
+    full, window = PoseGraph(), windowed(100, 30)
+    _explore(full, 400)
+    _explore(window, 400)
+    assert window.start > 0
+    solves = window.global_solves
+    assert not window.polish()  # asks the child for the batch optimum; does not wait for it
+    assert window.wait_idle(120)
+    assert window.polish() and window.global_solves == solves + 1
+    off = np.linalg.norm(window.poses()[:, :3, 3] - _optimum(full)[:, :3, 3], axis=1).max()
+    assert off < 0.005, off
+    assert not window.polish()  # polished: nothing added since
+
+
+def test_a_pose_graph_has_nothing_to_polish():
+    graph = PoseGraph()
+    _explore(graph, 50)
+    before = graph.poses()
+    assert not graph.polish() and np.array_equal(graph.poses(), before)
