@@ -317,28 +317,25 @@ class WindowedGraph(Keyframes, Landmarks):
     def polish(self) -> bool:
         """``flush`` without waiting, once per change of the graph: solved here while the window is the whole
         graph (bounded); after a roll, asked of the child, and the window re-anchored by a later call once it has
-        come back. True when the window moved."""
+        come back. True when the window moved (counted in ``global_solves``)."""
         mark = (len(self.books.factors), len(self.books.removed))
         if not self.num_keyframes or mark == self._polished:
             return False
+        estimate: Estimate | None = None
         if self.start == 0:
             poses, landmarks = self.local.optimum()
-            self._polished = mark
-            return self._rebuild(0, poses, {**self._frozen, **landmarks})
-        child = self._running_child()
-        if child is None or mark != self._polish_asked:
-            if child is not None:
-                child.request(exact=True)
-                self._polish_asked = mark
-            return False
-        solved = None if child.outstanding else child.receive(0.0)
-        if solved is None:
+            estimate = poses, {**self._frozen, **landmarks}
+        elif (child := self._running_child()) is not None and mark != self._polish_asked:
+            child.request(exact=True)
+            self._polish_asked = mark
+        elif child is not None and not child.outstanding and (solved := child.receive(0.0)) is not None:
+            estimate = self._anchored(solved)
+        if estimate is None:
             return False
         self._polished = mark
-        if not self._rebuild(self.start, *self._anchored(solved)):
-            return False
-        self.global_solves += 1
-        return True
+        moved = self._rebuild(self.start, *estimate)
+        self.global_solves += int(moved)
+        return moved
 
     def wait_idle(self, timeout: float = 60.0) -> bool:
         """Wait until the whole-graph child has no solve outstanding (its estimate left for the next take)."""

@@ -81,3 +81,32 @@ def test_a_live_service_tracks_the_freshest_frames_of_a_burst_and_accounts_for_e
     assert dropped["stale"] + dropped["queue"] == status["frames_dropped"]
     assert trajectory[-1][0] == data.frame(59).timestamp  # the newest frame was tracked, not a queued old one
     assert status["mapping"]["live"] and status["mapping"]["pending_keyframes"] <= 8
+
+
+def test_a_live_service_settles_its_map_at_the_batch_optimum_when_the_stream_pauses():
+    overrides = {"detector": {"enabled": False}, "robot": "settle", "ingest": {"live": True, "polish_after_s": 0.3}}
+    settings = load_settings(None, overrides)
+    session = open_session(settings.zenoh, "server", embedded=True)
+    data = open_dataset("synthetic:room?seed=1&frames=300&fps=30&width=320&height=240")
+    node = ServiceNode(settings, session)
+    try:
+        node.start()
+        pub = frame_publisher(session, f"{node.prefix}/rgbd")
+        for i in range(40):
+            pub.put(encode_frame(data.frame(i)))
+            time.sleep(0.05)
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline and node.status()["graph_window"]["whole_graph_solves"] == 0:
+            time.sleep(0.05)
+        status = node.status()
+        with node._lock:
+            graph = node.core.graph
+            optimum, _ = graph.local.optimum()
+            off = float(abs(graph.poses() - optimum).max())
+            again = graph.polish()
+    finally:
+        node.stop()
+        session.close()
+    assert status["frames_processed"] > 0 and status["mapping"]["pending_keyframes"] == 0
+    assert status["graph_window"]["whole_graph_solves"] == 1  # once for the pause, not once per idle tick
+    assert off < 1e-6 and not again  # at the batch optimum, with nothing left to do
