@@ -23,6 +23,8 @@ from service.config import load_settings
 from service.scheduler import ThreadedRunner
 from slam.build import build_core
 from slam.core import LIVE_MAX_PENDING
+from slam.map_views import anchored_frames
+from slam.records import FrameRecord
 from slam.runner import Handle, InlineRunner, Lane
 from sources import ground_truth_of, open_dataset
 from tests.conftest import REDKITCHEN, requires_redkitchen
@@ -210,3 +212,44 @@ def test_a_live_core_knows_the_frame_of_every_keyframe_made_beside_the_tracking(
         assert max(errors) < 0.05  # each keyframe's pose is its own frame's (a neighbour's is 2 cm away)
     finally:
         core.close()
+
+
+def test_frames_posed_before_their_keyframe_joined_follow_it(room):
+    """Live, the frame of a keyframe made beside the tracking, and the frames tracked until it joined, were posed
+    against the keyframe before it; the trajectory ties them to theirs, so each keyframe's frame is posed
+    exactly at its keyframe's estimate."""
+    _, frames, _ = room
+    core = build_core(load_settings(None, {"detector": {"enabled": False}}), InlineRunner())
+    core.live = True
+    try:
+        for f in frames:
+            core.step(dataclasses.replace(f, odometry=None, detections=None))
+        core.finish()
+        traj = core.trajectory()
+        at = {t: T for t, T in zip(traj.timestamps, traj.poses, strict=True)}
+        kf_poses = core.graph.poses()
+        late = [
+            k for k, t in enumerate(core.kf_stamps) if not any(r.is_keyframe and r.timestamp == t for r in core.records)
+        ]
+        assert len(late) > 3  # keyframes made beside the tracking, without a keyframe record of their own
+        for k in late:
+            np.testing.assert_allclose(at[core.kf_stamps[k]], kf_poses[k], atol=1e-9)
+    finally:
+        core.close()
+
+
+def test_anchored_frames_ties_the_frames_since_a_late_keyframe_to_it():
+    def pose(x: float) -> np.ndarray:
+        T = np.eye(4)
+        T[0, 3] = x
+        return T
+
+    # keyframe 1 is made from frame 2 and joins the graph at frame 4: frames 2 and 3 were posed against keyframe 0
+    records = [
+        FrameRecord(float(i), i, k, i == 0, pose(0.1 * i), pose(0.1 * i - base))
+        for i, (k, base) in enumerate([(0, 0.0), (0, 0.0), (0, 0.0), (0, 0.0), (1, 0.2), (1, 0.2)])
+    ]
+    anchors = anchored_frames(records, [0.0, 2.0])
+    assert [k for k, _ in anchors] == [0, 0, 1, 1, 1, 1]
+    for (k, T), r in zip(anchors, records, strict=True):
+        np.testing.assert_allclose(T, pose(0.1 * r.seq - (0.0 if k == 0 else 0.2)), atol=1e-12)
