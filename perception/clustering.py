@@ -15,7 +15,7 @@ import hdbscan
 import numpy as np
 
 from perception.coincident import coincident_groups
-from perception.features import FeatureVector, merge_features
+from perception.features import FeatureVector, merge_features, mixture
 from perception.track_retirement import compacted
 
 log = logging.getLogger(__name__)
@@ -222,8 +222,7 @@ def robust_gaussian(
     w = n / n.sum()
     centre = w @ means
     if float(np.linalg.eigvalsh(np.einsum("n,nij->ij", w, covs))[-1]) > parts_std_m**2:  # parts of a large object
-        d = means - centre
-        return centre, np.einsum("n,nij->ij", w, covs) + (d.T * w) @ d
+        return mixture(means, covs, n)
     for _ in range(iterations):
         centre = np.average(means, axis=0, weights=n / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-3))
     w = n * np.minimum(1.0, huber_m / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-9))

@@ -305,14 +305,18 @@ def transform_feature(f: FeatureVector, T: np.ndarray) -> FeatureVector:
     return FeatureVector(R @ f.mean + T[:3, 3], R @ f.cov @ R.T, f.n, f.label, f.track_id, f.sources)
 
 
+def mixture(means: np.ndarray, covs: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and covariance of the mixture of Gaussians (N, 3) / (N, 3, 3) with ``weights`` (N,)."""
+    w = np.asarray(weights, float) / np.sum(weights)
+    mean = w @ means
+    d = means - mean
+    return mean, np.einsum("k,kij->ij", w, covs) + (d.T * w) @ d
+
+
 def merge_features(features: Sequence[FeatureVector]) -> FeatureVector:
     """The pooled Gaussian of several feature vectors of one class (moments weighted by point count)."""
     n = np.array([f.n for f in features], float)
-    means = np.stack([f.mean for f in features])
-    w = n / n.sum()
-    mean = w @ means
-    d = means - mean
-    cov = np.einsum("k,kij->ij", w, np.stack([f.cov for f in features])) + (d.T * w) @ d
+    mean, cov = mixture(np.stack([f.mean for f in features]), np.stack([f.cov for f in features]), n)
     sources = tuple(i for f in features for i in f.sources)
     return FeatureVector(mean, cov, int(n.sum()), features[0].label, features[0].track_id, sources)
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from perception.features import mixture
 from perception.floor import view_ends, weighted_quantile
 
 LARGE_CLASSES: frozenset[str] = frozenset({"dining table", "couch", "bed", "tv"})
@@ -57,12 +58,9 @@ def union_footprint(
     Along ``up`` the Gaussian stays (cross terms with ``up`` dropped)."""
     means, covs, weights = views
     w = np.asarray(weights, float)
-    share_of = w / w.sum()
-    spread = means - share_of @ means
-    mixture = np.einsum("n,nij->ij", share_of, covs) + (spread.T * share_of) @ spread
     U = np.outer(up, up)
     new_mean, new_cov = np.asarray(mean, float).copy(), U @ cov @ U
-    for axis, share in zip(horizontal_axes(mixture, up), shares, strict=True):
+    for axis, share in zip(horizontal_axes(mixture(means, covs, w)[1], up), shares, strict=True):
         far, near = view_ends(means, covs, axis)
         lo, hi = weighted_quantile(near, w, share), weighted_quantile(far, w, 1.0 - share)
         new_mean += ((lo + hi) / 2.0 - float(axis @ new_mean)) * axis
