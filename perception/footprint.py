@@ -52,10 +52,9 @@ def union_footprint(
 ) -> tuple[np.ndarray, np.ndarray]:
     """An object's Gaussian ``mean``, ``cov`` (world frame) with its extent across ``up`` replaced by the union
     of its ``views``' extents ((N, 3) means, (N, 3, 3) covariances, (N,) weights) along the horizontal axes of
-    their mixture: from
-    the weighted ``share`` quantile of the views' near ends to the ``1 - share`` quantile of their far ends,
-    uniform in between, with the wider axis's and the narrower's ``shares``.
-    Along ``up`` the Gaussian stays (cross terms with ``up`` dropped)."""
+    their mixture: from the weighted ``share`` quantile of the views' near ends to the ``1 - share`` quantile of
+    their far ends, uniform in between, with the wider axis's and the narrower's ``shares``. Along ``up`` the
+    Gaussian stays (cross terms with ``up`` dropped)."""
     means, covs, weights = views
     w = np.asarray(weights, float)
     U = np.outer(up, up)

@@ -93,10 +93,12 @@ class MapViews:
         return Trajectory(np.array([t for t, _, _ in rows]), np.stack([kf_poses[k] @ T for _, k, T in rows]))
 
     def untied_frames(self) -> list[FrameRecord]:
-        """The frames whose keyframe's map segment is not joined to the map (yet)."""
+        """The frames whose keyframe's map segment (as ``anchored_frames`` ties it) is not joined to the map (yet):
+        those ``trajectory(tied_only=True)`` leaves out."""
         if not self.segments.unjoined() and self.methods["lost"] == 0:
             return []
-        return [r for r in self.records if not (r.posed and self.segments.tied(r.keyframe))]
+        anchors = anchored_frames(self.records, self.kf_stamps)
+        return [r for r, (k, _) in zip(self.records, anchors, strict=True) if not (r.posed and self.segments.tied(k))]
 
     def odometry_trajectory(self) -> Trajectory:
         """The front-end (odometry) poses of every processed frame it posed."""
