@@ -31,3 +31,20 @@ def bench_live(
     from bench.live import run_live_bench
 
     run_live_bench(console, list(dataset or LIVE_DATASETS), frames, rate, profile, write, repeat)
+
+
+@bench_app.command("live-spread")
+def bench_live_spread(
+    dataset: DatasetsOpt = None,
+    frames: Annotated[int, typer.Option("--frames", help="frames of each dataset")] = 1000,
+    rate: Annotated[float, typer.Option("--rate", help="camera rate (frames/s)", min=1.0, max=1000.0)] = 30.0,
+    step: Annotated[
+        float, typer.Option("--step", help="share by which each keyframe threshold moves", min=0.0, max=0.5)
+    ] = 0.1,
+    write: WriteOpt = None,
+) -> None:
+    """Live against offline ATE under the service's keyframe rule and that rule with its translation or
+    rotation threshold a step lower or higher: how closely one live run can be held to one offline run."""
+    from bench.live_spread import run_spread_bench
+
+    run_spread_bench(console, list(dataset or LIVE_DATASETS[:1]), frames, rate, step, write)

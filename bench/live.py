@@ -30,6 +30,7 @@ from evaluation.trajectory_metrics import evaluate
 from graph.geometry import pose_from_tum
 from graph.trajectory import Trajectory
 from perception.frame import Frame
+from perception.keyframing import KeyframeSettings
 from service.config import Settings, ViewerSettings
 from service.protocol import encode_frame
 from service.replay import frame_publisher
@@ -112,10 +113,11 @@ def settled_trajectory(session: Any, key: str, status: dict[str, Any]) -> dict[s
     return None
 
 
-def offline_ate(dataset: str, frames: int) -> float | None:
-    """ATE (m) of ``objslam run`` on the same frames without their odometry and detections (every frame)."""
+def offline_ate(dataset: str, frames: int, keyframes: KeyframeSettings | None = None) -> float | None:
+    """ATE (m) of ``objslam run`` on the same frames without their odometry and detections (every frame), with
+    the keyframe rule ``keyframes`` (default: the service's)."""
     bare = first_frames(dataset, frames)
-    settings = Settings(viewer=ViewerSettings(enabled=False))
+    settings = Settings(viewer=ViewerSettings(enabled=False), keyframes=keyframes or KeyframeSettings())
     with tempfile.TemporaryDirectory() as out:
         summary = run_dataset(bare, Path(out), settings, progress=False)
     ate = summary.get("ate", {}).get("trajectory", {}).get("ate_rmse_m")

@@ -1,0 +1,141 @@
+"""``objslam bench live-spread``: the live service's ATE against the offline run's as the keyframe rule moves a
+little (issue 28).
+
+Which frames become keyframes decides the graph, its loop closures and so the ATE. ``serve --live`` decides them
+while tracking goes on (keyframes are made beside it), so its keyframes are not those of ``objslam run``, which
+takes every frame in order. How far the offline ATE itself moves when the rule moves by a tenth (the translation
+or the rotation threshold 10 % lower or higher) says how closely a single live run can be held to a single
+offline one. Here both run under each rule: the same frames (bare, as in ``bench live``), offline first, then live
+at the camera rate into a ``serve`` subprocess, settled after the stream; the summary compares the medians.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+
+from bench.live import _cm, _trajectory, first_frames, offline_ate, serve_live
+from bench.report import markdown_table, record, show_table
+from evaluation.trajectory_metrics import evaluate
+from perception.keyframing import KeyframeSettings
+from service.protocol import encode_frame
+
+STEP = 0.1
+"""The keyframe rule's thresholds are moved by this share either way."""
+
+
+def rules(step: float = STEP) -> dict[str, KeyframeSettings]:
+    """The service's keyframe rule and, one at a time, its translation and rotation thresholds ``step`` lower
+    and higher."""
+    base = KeyframeSettings()
+    out = {"the service's rule": base}
+    for field, unit in (("translation_m", "m"), ("rotation_deg", "deg")):
+        for sign in (-1, 1):
+            value = round(getattr(base, field) * (1 + sign * step), 6)
+            out[f"{field} {value:g} {unit}"] = base.model_copy(update={field: value})
+    return out
+
+
+def env_of(rule: KeyframeSettings) -> dict[str, str]:
+    """The environment that gives ``serve`` the keyframe rule ``rule`` (fields that differ from the default)."""
+    base = KeyframeSettings()
+    return {f"OBJSLAM_KEYFRAMES__{k.upper()}": str(v) for k, v in rule.model_dump().items() if v != getattr(base, k)}
+
+
+def measure_spread(dataset: str, frames: int, rate_hz: float, step: float = STEP) -> list[dict[str, Any]]:
+    """Per keyframe rule: the offline ATE, and the live run's ATE at the stream's end and settled (m)."""
+    bare = first_frames(dataset, frames)
+    payloads = [encode_frame(bare.frame(i)) for i in range(len(bare))]
+    out = []
+    for name, rule in rules(step).items():
+        offline = offline_ate(dataset, len(payloads), rule)
+        env = {"OBJSLAM_INGEST__LIVE": "true", **env_of(rule)}
+        with tempfile.TemporaryDirectory() as state:
+            _, reply, settled, _ = serve_live(payloads, rate_hz, {**env, "OBJSLAM_STATE_DIR": state}, settle=True)
+        end = evaluate(_trajectory(reply), bare.ground_truth)
+        calm = evaluate(_trajectory(settled), bare.ground_truth) if settled is not None else None
+        out.append(
+            {
+                "rule": name,
+                "offline": offline,
+                "live_end": end.ate_rmse_m if end is not None else None,
+                "live_settled": calm.ate_rmse_m if calm is not None else None,
+            }
+        )
+    return out
+
+
+def _median(values: list[float | None]) -> float | None:
+    known = [v for v in values if v is not None]
+    return float(np.median(known)) if known else None
+
+
+def spread_rows(dataset: str, results: list[dict[str, Any]]) -> list[list[str]]:
+    """A row per rule, then the medians over the rules."""
+    rows = []
+    for r in results:
+        diff = r["live_settled"] - r["offline"] if r["live_settled"] is not None and r["offline"] is not None else None
+        rows.append(
+            [f"`{dataset}`", r["rule"], _cm(r["offline"]), _cm(r["live_end"]), _cm(r["live_settled"]), _cm(diff)]
+        )
+    med = {k: _median([r[k] for r in results]) for k in ("offline", "live_end", "live_settled")}
+    lower = sum(
+        r["live_settled"] <= r["offline"] for r in results if r["live_settled"] is not None and r["offline"] is not None
+    )
+    diff = med["live_settled"] - med["offline"] if med["live_settled"] is not None and med["offline"] else None
+    rows.append(
+        [
+            f"`{dataset}`",
+            f"**median of {len(results)}** (live settled <= offline in {lower})",
+            f"**{_cm(med['offline'])}**",
+            _cm(med["live_end"]),
+            f"**{_cm(med['live_settled'])}**",
+            _cm(diff),
+        ]
+    )
+    return rows
+
+
+HEADER = [
+    "dataset",
+    "keyframe rule",
+    "offline ATE (cm)",
+    "live ATE at the end (cm)",
+    "live ATE settled (cm)",
+    "settled - offline (cm)",
+]
+
+
+def run_spread_bench(
+    console: Console, datasets: list[str], frames: int, rate_hz: float, step: float, write: Path | None
+) -> list[dict[str, Any]]:
+    results = {d: measure_spread(d, frames, rate_hz, step) for d in datasets}
+    rows = [row for d, rs in results.items() for row in spread_rows(d, rs)]
+    table = markdown_table(HEADER, rows)
+    show_table(console, "live against offline as the keyframe rule moves", HEADER, rows)
+    offline = [r["offline"] for rs in results.values() for r in rs if r["offline"] is not None]
+    notes = (
+        f"Each dataset's first {frames} frames, bare (no odometry, no detections), run offline (`objslam run`: "
+        f"every frame in order) and live (`serve --live`, published at {rate_hz:g} Hz as in `bench live`) under "
+        f"the service's keyframe rule and under that rule with its translation or rotation threshold {step:.0%} "
+        "lower or higher (`keyframes.translation_m`, `keyframes.rotation_deg`). Live ATE settled: once the "
+        "pause after the stream has moved the graph to its batch optimum (`ingest.polish_after_s`). Offline ATE "
+        f"over the rules: {min(offline) * 100:.2f}-{max(offline) * 100:.2f} cm."
+        if offline
+        else ""
+    )
+    spec = " ".join(f"--dataset '{d}'" for d in datasets)
+    path = record(
+        "live-spread",
+        "Live against offline as the keyframe rule moves",
+        f"objslam bench live-spread {spec} --frames {frames} --rate {rate_hz:g} --step {step:g}",
+        table,
+        notes,
+        write,
+    )
+    console.print(f"recorded in {path}")
+    return [r | {"dataset": d} for d, rs in results.items() for r in rs]

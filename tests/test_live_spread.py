@@ -1,0 +1,45 @@
+"""The keyframe rules of ``objslam bench live-spread`` and the environment that hands them to ``serve``."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench.live_spread import env_of, rules, spread_rows
+from perception.keyframing import KeyframeSettings
+from service.config import Settings
+
+
+def test_rules_move_one_threshold_at_a_time_by_the_step() -> None:
+    base = KeyframeSettings()
+    moved = rules(0.2)
+    assert moved["the service's rule"] == base
+    assert len(moved) == 5
+    for name, rule in moved.items():
+        changed = {k for k, v in rule.model_dump().items() if v != getattr(base, k)}
+        assert len(changed) == (0 if rule == base else 1), name
+        for k in changed:
+            assert getattr(rule, k) == pytest.approx(getattr(base, k) * 0.8) or getattr(rule, k) == pytest.approx(
+                getattr(base, k) * 1.2
+            )
+
+
+@pytest.mark.parametrize("name", list(rules()))
+def test_the_environment_gives_serve_the_rule(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    rule = rules()[name]
+    for key, value in env_of(rule).items():
+        monkeypatch.setenv(key, value)
+    assert Settings().keyframes == rule
+
+
+def test_the_summary_row_takes_the_medians_and_counts_the_rules_live_did_no_worse() -> None:
+    results = [
+        {"rule": "a", "offline": 0.040, "live_end": 0.045, "live_settled": 0.041},
+        {"rule": "b", "offline": 0.038, "live_end": 0.040, "live_settled": 0.036},
+        {"rule": "c", "offline": 0.042, "live_end": 0.041, "live_settled": 0.039},
+    ]
+    rows = spread_rows("d", results)
+    assert len(rows) == 4
+    summary = rows[-1]
+    assert "live settled <= offline in 2" in summary[1]
+    assert summary[2] == "**4.00**" and summary[4] == "**3.90**"
+    assert summary[5] == "-0.10"
