@@ -38,10 +38,16 @@ floor's farthest returns and lay 0.12 m too near the camera (development scenes 
 
 
 def room_behind(
-    depth_m: np.ndarray, box: Box, rows: np.ndarray, cols: np.ndarray, ring: float = 0.15, step: int = 4
+    depth_m: np.ndarray,
+    box: Box,
+    rows: np.ndarray,
+    cols: np.ndarray,
+    ring: float = 0.15,
+    step: int = 4,
+    share: float = 90.0,
 ) -> float:
-    """Free depth behind an object's visible surface (its pixels ``rows``, ``cols``): the 90th percentile of how
-    far the pixels of a ring around its box (``ring`` of the box size wide) lie behind the nearest object pixel,
+    """Free depth behind an object's visible surface (its pixels ``rows``, ``cols``): the ``share`` percentile of
+    how far the pixels of a ring around its box (``ring`` of the box size wide) lie behind the nearest object pixel,
     counting only those behind it (a floor or table beside the object lies partly behind it too); inf when none
     are. Measured against the nearest pixel of the surface rather than its nearest point, so a screen on a wall
     seen from below or at a slant is bounded by the wall just behind it. Pixels on a ``step`` grid. A ring with
@@ -69,7 +75,12 @@ def room_behind(
     _, (ny, nx) = distance_transform_edt(~is_surface, return_indices=True)  # each cell's nearest surface cell
     gap = patch[around] - surface[ny[around], nx[around]]
     behind = gap[gap > 0.01]
-    return float(np.percentile(behind, 90)) if behind.size else np.inf
+    return float(np.percentile(behind, share)) if behind.size else np.inf
+
+
+PANEL_ROOM_SHARE = 50.0
+"""A panel's free depth behind it (``room_behind``) is this percentile of the ring's: a screen on a wall stands off
+it by the same depth all round, and the wall beside the far end of a screen seen at a slant recedes."""
 
 
 BORDER_PX = 4
@@ -107,7 +118,10 @@ def complete_amodal(
     ``shift`` standard deviations behind the near side (10th percentile), at most half the depth, and the spread
     is that of a uniform extent of that depth; across the ray the points' own statistics stay. Pixels of a
     supporting surface that join the object's depth segment then no longer stretch it. A panel (``PANEL_DEPTH_M``:
-    a screen, a wall clock) is not as deep as it is wide: its visible face stays as it is (``panel``).
+    a screen, a wall clock) is not as deep as it is wide: its visible face stays as it is (``panel``), and it is
+    no deeper than the free depth ``room`` behind that face (a screen on a wall is as deep as it stands off the
+    wall, ``PANEL_ROOM_SHARE``; the face's own reach along a slanted ray is its slant, not depth behind it: adding
+    it left screens 10 cm deep where they are 5-7 cm, 2 cm into the wall on the development seeds).
 
     ``cut_sideways``: the image border cuts the box on the left or right, so the points' horizontal spread
     understates the object's width; the depth prior then takes the larger of the horizontal and vertical
@@ -134,7 +148,7 @@ def complete_amodal(
     smooth = points if reference is None else reference
     near, far = np.percentile(smooth @ ray, [10, 90])
     if label in PANEL_DEPTH_M:
-        mean, cov = panel(feature_from_points(smooth, label), ray, min(PANEL_DEPTH_M[label], float(far - near) + room))
+        mean, cov = panel(feature_from_points(smooth, label), ray, min(PANEL_DEPTH_M[label], room))
     else:
         sx = float(np.sqrt(f.cov[0, 0] if not cut_sideways else max(f.cov[0, 0], f.cov[1, 1])))
         depth = min(np.sqrt(12.0) * sx, float(far - near) + room)
@@ -225,7 +239,7 @@ def detection_feature(
         label,
         track_id,
         config.amodal,
-        room_behind(depth_m, box, rows, cols),
+        room_behind(depth_m, box, rows, cols, share=PANEL_ROOM_SHARE if label in PANEL_DEPTH_M else 90.0),
         cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0],
         reference=pixels_to_points(cols[idx], rows[idx], smooth, K),
         up=up,
