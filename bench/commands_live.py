@@ -11,14 +11,16 @@ import typer
 from bench.commands import DatasetsOpt, WriteOpt, bench_app
 from service.cli_common import console
 
+FramesOpt = Annotated[int, typer.Option("--frames", help="frames of each dataset")]
+RateOpt = Annotated[float, typer.Option("--rate", help="camera rate (frames/s)", min=1.0, max=1000.0)]
 LIVE_DATASETS = ("../shared/data/7scenes_redkitchen_1000", "synthetic:family?seed=1001&frames=600")  # held out
 
 
 @bench_app.command("live")
 def bench_live(
     dataset: DatasetsOpt = None,
-    frames: Annotated[int, typer.Option("--frames", help="frames of each dataset")] = 1000,
-    rate: Annotated[float, typer.Option("--rate", help="camera rate (frames/s)", min=1.0, max=1000.0)] = 30.0,
+    frames: FramesOpt = 1000,
+    rate: RateOpt = 30.0,
     profile: Annotated[
         bool, typer.Option("--profile", help="record serve with py-spy: its top costs per frame")
     ] = False,
@@ -36,8 +38,8 @@ def bench_live(
 @bench_app.command("live-spread")
 def bench_live_spread(
     dataset: DatasetsOpt = None,
-    frames: Annotated[int, typer.Option("--frames", help="frames of each dataset")] = 1000,
-    rate: Annotated[float, typer.Option("--rate", help="camera rate (frames/s)", min=1.0, max=1000.0)] = 30.0,
+    frames: FramesOpt = 1000,
+    rate: RateOpt = 30.0,
     step: Annotated[
         float, typer.Option("--step", help="share by which each keyframe threshold moves", min=0.0, max=0.5)
     ] = 0.1,

@@ -69,6 +69,10 @@ def measure_spread(dataset: str, frames: int, rate_hz: float, step: float = STEP
     return out
 
 
+def _minus(a: float | None, b: float | None) -> float | None:
+    return a - b if a is not None and b is not None else None
+
+
 def _median(values: list[float | None]) -> float | None:
     known = [v for v in values if v is not None]
     return float(np.median(known)) if known else None
@@ -78,15 +82,13 @@ def spread_rows(dataset: str, results: list[dict[str, Any]]) -> list[list[str]]:
     """A row per rule, then the medians over the rules."""
     rows = []
     for r in results:
-        diff = r["live_settled"] - r["offline"] if r["live_settled"] is not None and r["offline"] is not None else None
+        diff = _minus(r["live_settled"], r["offline"])
         rows.append(
             [f"`{dataset}`", r["rule"], _cm(r["offline"]), _cm(r["live_end"]), _cm(r["live_settled"]), _cm(diff)]
         )
     med = {k: _median([r[k] for r in results]) for k in ("offline", "live_end", "live_settled")}
-    lower = sum(
-        r["live_settled"] <= r["offline"] for r in results if r["live_settled"] is not None and r["offline"] is not None
-    )
-    diff = med["live_settled"] - med["offline"] if med["live_settled"] is not None and med["offline"] else None
+    lower = sum((d := _minus(r["live_settled"], r["offline"])) is not None and d <= 0 for r in results)
+    diff = _minus(med["live_settled"], med["offline"])
     rows.append(
         [
             f"`{dataset}`",
