@@ -80,14 +80,13 @@ def _median(values: list[float | None]) -> float | None:
 
 def spread_rows(dataset: str, results: list[dict[str, Any]]) -> list[list[str]]:
     """A row per rule, then the medians over the rules."""
-    rows = []
-    for r in results:
-        diff = _minus(r["live_settled"], r["offline"])
-        rows.append(
-            [f"`{dataset}`", r["rule"], _cm(r["offline"]), _cm(r["live_end"]), _cm(r["live_settled"]), _cm(diff)]
-        )
+    diffs = [_minus(r["live_settled"], r["offline"]) for r in results]
+    rows = [
+        [f"`{dataset}`", r["rule"], _cm(r["offline"]), _cm(r["live_end"]), _cm(r["live_settled"]), _cm(d)]
+        for r, d in zip(results, diffs, strict=True)
+    ]
     med = {k: _median([r[k] for r in results]) for k in ("offline", "live_end", "live_settled")}
-    lower = sum((d := _minus(r["live_settled"], r["offline"])) is not None and d <= 0 for r in results)
+    lower = sum(d is not None and d <= 0 for d in diffs)
     diff = _minus(med["live_settled"], med["offline"])
     rows.append(
         [

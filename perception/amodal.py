@@ -44,15 +44,16 @@ def room_behind(
     cols: np.ndarray,
     ring: float = 0.15,
     step: int = 4,
-    share: float = 90.0,
+    share: float | None = None,
 ) -> float:
-    """Free depth behind an object's visible surface (its pixels ``rows``, ``cols``): the ``share`` percentile of
-    how far the pixels of a ring around its box (``ring`` of the box size wide) lie behind the nearest object pixel,
-    counting only those behind it (a floor or table beside the object lies partly behind it too); inf when none
-    are. Measured against the nearest pixel of the surface rather than its nearest point, so a screen on a wall
-    seen from below or at a slant is bounded by the wall just behind it. Pixels on a ``step`` grid. A ring with
-    more than ``NO_RETURN_SHARE`` of its pixels without depth bounds nothing (inf): what lies behind is beyond
-    the sensor's range, and the farthest returns (the floor beside the object up to that range) are no wall.
+    """Free depth behind an object's visible surface (its pixels ``rows``, ``cols``): the ``share`` percentile
+    (default ``ROOM_SHARE``) of how far the pixels of a ring around its box (``ring`` of the box size wide) lie
+    behind the nearest object pixel, counting only those behind it (a floor or table beside the object lies partly
+    behind it too); inf when none are. Measured against the nearest pixel of the surface rather than its nearest
+    point, so a screen on a wall seen from below or at a slant is bounded by the wall just behind it. Pixels on a
+    ``step`` grid. A ring with more than ``NO_RETURN_SHARE`` of its pixels without depth bounds nothing (inf): what
+    lies behind is beyond the sensor's range, and the farthest returns (the floor beside the object up to that
+    range) are no wall.
     """
     windows = ring_windows(depth_m.shape, box, ring)
     if windows is None or len(rows) == 0:
@@ -75,8 +76,11 @@ def room_behind(
     _, (ny, nx) = distance_transform_edt(~is_surface, return_indices=True)  # each cell's nearest surface cell
     gap = patch[around] - surface[ny[around], nx[around]]
     behind = gap[gap > 0.01]
-    return float(np.percentile(behind, share)) if behind.size else np.inf
+    return float(np.percentile(behind, ROOM_SHARE if share is None else share)) if behind.size else np.inf
 
+
+ROOM_SHARE = 90.0
+"""The free depth behind an object (``room_behind``) is this percentile of the ring's, unless told otherwise."""
 
 PANEL_ROOM_SHARE = 50.0
 """A panel's free depth behind it (``room_behind``) is this percentile of the ring's: a screen on a wall stands off
@@ -239,7 +243,7 @@ def detection_feature(
         label,
         track_id,
         config.amodal,
-        room_behind(depth_m, box, rows, cols, share=PANEL_ROOM_SHARE if label in PANEL_DEPTH_M else 90.0),
+        room_behind(depth_m, box, rows, cols, share=PANEL_ROOM_SHARE if label in PANEL_DEPTH_M else None),
         cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0],
         reference=pixels_to_points(cols[idx], rows[idx], smooth, K),
         up=up,

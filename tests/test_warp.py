@@ -257,23 +257,30 @@ def test_a_wall_the_support_joined_to_a_small_object_leaves_it_with_the_support(
     assert np.sqrt(12.0 * f.cov[0, 0]) == pytest.approx(10 * 2.2 / cam.fx, rel=0.15)
 
 
+SLANT_CAM = Intrinsics(300.0, 300.0, 159.5, 119.5)
+SLANT = np.array([np.cos(np.radians(40.0)), np.sin(np.radians(40.0))])  # a line turned 40 degrees in (x, z)
+
+
+def _slanted_line_depth(point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each column's ray of ``SLANT_CAM`` (x/z = ray_x) meets the line point + s * ``SLANT``: its depth and
+    s, which solves (px + s dx) = ray_x (pz + s dz)."""
+    ray_x = (np.arange(320) - SLANT_CAM.cx) / SLANT_CAM.fx
+    s = (ray_x * point[1] - point[0]) / (SLANT[0] - ray_x * SLANT[1])
+    return point[1] + s * SLANT[1], s
+
+
 def test_a_screen_seen_at_a_slant_is_a_panel_not_as_deep_as_it_is_wide() -> None:
     """A 1 m wide screen 3 m away turned 40 degrees, nothing behind it nearby: completed as deep as it is wide, a
     chair's view would make it a 0.7 m square; a screen keeps its slanted face, 10 cm deep."""
-    cam = Intrinsics(300.0, 300.0, 159.5, 119.5)
     depth = np.full((240, 320), 6.0, np.float32)
-    angle = np.radians(40.0)
-    direction = np.array([np.cos(angle), np.sin(angle)])  # along the screen in the camera's (x, z) plane
+    direction = SLANT  # along the screen in the camera's (x, z) plane
     centre = np.array([0.0, 3.0])
-    cols = np.arange(320)
-    ray_x = (cols - cam.cx) / cam.fx
-    # the ray (x/z = ray_x) meets the line centre + s * direction where s solves (cx + s dx) = ray_x (cz + s dz)
-    s = (ray_x * centre[1] - centre[0]) / (direction[0] - ray_x * direction[1])
+    screen_depth, s = _slanted_line_depth(centre)
     on = np.abs(s) <= 0.5
-    depth[100:140, on] = (centre[1] + s[on] * direction[1]).astype(np.float32)
-    box = (float(cols[on].min()), 100.0, float(cols[on].max() + 1), 140.0)
-    screen = detection_feature(depth, cam, box, "tv", 1, FeatureConfig())
-    chair = detection_feature(depth, cam, box, "chair", 1, FeatureConfig())
+    depth[100:140, on] = screen_depth[on].astype(np.float32)
+    box = (float(np.flatnonzero(on).min()), 100.0, float(np.flatnonzero(on).max() + 1), 140.0)
+    screen = detection_feature(depth, SLANT_CAM, box, "tv", 1, FeatureConfig())
+    chair = detection_feature(depth, SLANT_CAM, box, "chair", 1, FeatureConfig())
     assert screen is not None and chair is not None
     plane = np.ix_([0, 2], [0, 2])
     vals, vecs = np.linalg.eigh(screen.cov[plane])
@@ -357,25 +364,15 @@ def test_a_screen_on_a_wall_is_as_deep_as_it_stands_off_the_wall() -> None:
     """A 1 m wide screen 5 cm deep hung on a wall 3 m away, both turned 40 degrees: the screen's slanted face
     reaches 0.6 m along the ray, which is no depth behind it; the free depth behind the face is the wall's 5 cm.
     Its centre is half that behind the face, its thin side about that thick."""
-    cam = Intrinsics(300.0, 300.0, 159.5, 119.5)
-    angle = np.radians(40.0)
-    direction = np.array([np.cos(angle), np.sin(angle)])  # along the screen in the camera's (x, z) plane
-    normal = np.array([-direction[1], direction[0]])  # into the wall, away from the camera
+    normal = np.array([-SLANT[1], SLANT[0]])  # into the wall, away from the camera
     face, thick = np.array([0.0, 3.0]), 0.05
-    ray_x = (np.arange(320) - cam.cx) / cam.fx
-
-    def plane_depth(point: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Depth along each column's ray to the line point + s * direction, and s."""
-        s = (ray_x * point[1] - point[0]) / (direction[0] - ray_x * direction[1])
-        return point[1] + s * direction[1], s
-
-    wall, _ = plane_depth(face + thick * normal)
-    screen, s = plane_depth(face)
+    wall, _ = _slanted_line_depth(face + thick * normal)
+    screen, s = _slanted_line_depth(face)
     depth = np.tile(wall.astype(np.float32), (240, 1))
     on = np.abs(s) <= 0.5
     depth[100:140, on] = screen[on].astype(np.float32)
     box = (float(np.flatnonzero(on).min()), 100.0, float(np.flatnonzero(on).max() + 1), 140.0)
-    f = detection_feature(depth, cam, box, "tv", 1, FeatureConfig())
+    f = detection_feature(depth, SLANT_CAM, box, "tv", 1, FeatureConfig())
     assert f is not None
     plane = np.ix_([0, 2], [0, 2])
     thin = np.sqrt(12.0 * np.linalg.eigvalsh(f.cov[plane])[0])
