@@ -9,12 +9,12 @@ import numpy as np
 
 from graph.geometry import inverse
 from perception.amodal import cut_by_border, cut_vertically, detection_feature
+from perception.anchoring import anchored_segments
 from perception.camera import Intrinsics
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid, robust_gaussian
 from perception.features import (
     FeatureConfig,
     FeatureVector,
-    depth_segment,
     hidden_by_twin,
     repooled,
     transform_feature,
@@ -138,7 +138,7 @@ class ObjectMapper:
         whole = [not any(cut_by_border(d.box, w, h)) for d in detections]
         plane = level_plane(depth_m, K, self.floor_config)
         up = self._camera_up(pose, plane)
-        found = [depth_segment(depth_m, d.box, self.features, d.label) for d in detections]
+        found = anchored_segments(depth_m, [(d.box, d.label) for d in detections], self.features)
         segments = [f[2] for f in found]
         occluders = [[s for s in segments if s is not None and s is not mine] for mine in segments]
         twins = [

@@ -1,0 +1,88 @@
+"""A large object's depth segment anchored on its own surface, not on a smaller object in front of its middle."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from perception.anchoring import anchored_on, anchored_segments
+from perception.features import FeatureConfig, depth_segment
+
+
+def _wall(z: float = 4.0, shape: tuple[int, int] = (60, 80)) -> np.ndarray:
+    return np.full(shape, z, np.float32)
+
+
+def test_a_refrigerator_behind_a_plant_is_anchored_on_itself_not_on_the_plant() -> None:
+    """A refrigerator's face 2.4 m away with a potted plant 2.0 m away before its middle: its box's centre shows
+    the plant, so its segment alone is the plant's; anchored again off the plant's box it is its own face."""
+    depth = _wall()
+    depth[5:55, 20:60] = 2.4  # the refrigerator
+    depth[20:45, 32:48] = 2.0  # the plant before its middle
+    fridge, plant = (20.0, 5.0, 60.0, 55.0), (32.0, 20.0, 48.0, 45.0)
+    cfg = FeatureConfig()
+    alone = depth_segment(depth, fridge, cfg, "refrigerator")[2]
+    assert alone is not None and alone.far < 2.1  # on its own, the box's segment is the plant
+    (rows, cols, own), (_, _, small) = anchored_segments(
+        depth, [(fridge, "refrigerator"), (plant, "potted plant")], cfg
+    )
+    assert own is not None and small is not None
+    assert abs(own.anchor - 2.4) < 0.01 and own.near > 2.35 and np.all(depth[rows, cols] > 2.35)
+    assert len(rows) > 1000  # its face around the plant
+    assert abs(small.anchor - 2.0) < 0.01 and small.far < 2.05  # the plant keeps its own
+
+
+def test_a_table_anchored_on_its_own_top_keeps_its_segment_with_a_cup_on_it() -> None:
+    """A cup on the far part of a table top: the table's centre shows the table, so nothing changes; nor does a
+    box that only touches the table's (not inside it)."""
+    depth = _wall()
+    depth[30:50, 10:70] = np.linspace(1.8, 2.6, 20)[:, None]  # the table top receding from 1.8 to 2.6 m
+    depth[22:30, 50:56] = 2.5  # the cup
+    table, cup = (10.0, 22.0, 70.0, 50.0), (50.0, 22.0, 56.0, 31.0)
+    cfg = FeatureConfig()
+    plain = [depth_segment(depth, b, cfg, label) for b, label in ((table, "dining table"), (cup, "cup"))]
+    again = anchored_segments(depth, [(table, "dining table"), (cup, "cup")], cfg)
+    for (r0, c0, s0), (r1, c1, s1) in zip(plain, again, strict=True):
+        assert s0 == s1 and np.array_equal(r0, r1) and np.array_equal(c0, c1)
+    assert plain[0][2] is not None and plain[1][2] is not None
+    assert anchored_on(plain, ["dining table", "cup"], cfg.gap_m) == [[], []]
+
+
+def test_a_bottle_standing_above_a_tables_box_keeps_its_own_segment() -> None:
+    """A bottle on a table top, its top above the table's box: the table's box holds 80 % of the bottle's, not the
+    90 % that makes it around it (``AROUND``), but it is far larger (``LARGER``), so the bottle's pixels in it are
+    its own."""
+    depth = _wall()
+    depth[30:50, 10:70] = np.linspace(1.8, 2.6, 20)[:, None]  # the table top
+    depth[14:34, 40:46] = 2.0  # the bottle, standing on it and reaching above its box
+    table, bottle = (10.0, 18.0, 70.0, 50.0), (40.0, 14.0, 46.0, 34.0)
+    cfg = FeatureConfig()
+    plain = [depth_segment(depth, b, cfg, label) for b, label in ((table, "dining table"), (bottle, "bottle"))]
+    assert plain[1][2] is not None and abs(plain[1][2].anchor - 2.0) < 0.01
+    assert anchored_on(plain, ["dining table", "bottle"], cfg.gap_m) == [[], []]
+    (_, _, own), _ = anchored_segments(depth, [(bottle, "bottle"), (table, "dining table")], cfg)
+    assert own == plain[1][2]
+
+
+def test_a_box_showing_only_another_detection_gives_no_segment() -> None:
+    """A couch whose own surface returns no depth behind a tall plant: every pixel with depth in its box is the
+    plant's, so it gives no view of its own; the plant keeps its own."""
+    depth = np.full((60, 80), np.nan, np.float32)
+    depth[0:60, 25:55] = 2.0  # the plant, taller than the couch's box
+    couch, plant = (20.0, 10.0, 60.0, 50.0), (25.0, 0.0, 55.0, 60.0)
+    cfg = FeatureConfig()
+    out = anchored_segments(depth, [(couch, "couch"), (plant, "potted plant")], cfg)
+    assert depth_segment(depth, couch, cfg, "couch")[2] is not None  # alone, it would be the plant's surface
+    assert out[0][2] is None and len(out[0][0]) == 0
+    assert out[1][2] is not None and abs(out[1][2].anchor - 2.0) < 0.01
+
+
+def test_one_object_detected_under_two_labels_keeps_both_views() -> None:
+    """A chair also detected as a couch, the two boxes nearly the same: each segment lies in the other's box,
+    neither is taken for the other's object."""
+    depth = _wall()
+    depth[10:50, 20:60] = 2.0
+    boxes = [((20.0, 10.0, 60.0, 50.0), "chair"), ((21.0, 11.0, 59.0, 50.0), "couch")]
+    cfg = FeatureConfig()
+    plain = [depth_segment(depth, b, cfg, label) for b, label in boxes]
+    assert anchored_on(plain, [label for _, label in boxes], cfg.gap_m) == [[], []]
+    assert all(s is not None for _, _, s in anchored_segments(depth, boxes, cfg))
