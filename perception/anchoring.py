@@ -23,8 +23,8 @@ from perception.features import (
     Segmented,
     box_pixels,
     depth_segment,
-    dominant_depth_mask,
     overlap,
+    segment_at,
 )
 
 EXPLAINED = 0.8
@@ -83,13 +83,7 @@ def reanchored(depth_m: np.ndarray, segmented: Segmented, config: FeatureConfig,
     if not free.any():
         return rows[:0], cols[:0], None
     anchor = float(np.median(depth_m[cr[free], cc[free]]))
-    rows, cols = box_pixels(depth_m, own.box, most=config.pixels)
-    depths = depth_m[rows, cols]
-    keep = dominant_depth_mask(depths, anchor, config.gap_m)
-    if not keep.any():
-        return rows[keep], cols[keep], None
-    kept = depths[keep]
-    return rows[keep], cols[keep], DepthSegment(own.box, anchor, float(kept.min()), float(kept.max()))
+    return segment_at(depth_m, own.box, config, anchor, box_pixels(depth_m, own.box, most=config.pixels))
 
 
 def anchored_segments(depth_m: np.ndarray, boxes: Sequence[tuple[Box, str]], config: FeatureConfig) -> list[Segmented]:

@@ -188,7 +188,15 @@ def depth_segment(depth_m: np.ndarray, box: Box, config: FeatureConfig, label: s
     rows, cols = box_pixels(depth_m, box, most=config.pixels)
     if len(rows) == 0 or (label not in PANEL_DEPTH_M and centre_depth(depth_m, box, config) < config.min_centre_depth):
         return rows[:0], cols[:0], None
-    anchor = segment_anchor(depth_m, box, config, rows, cols)
+    return segment_at(depth_m, box, config, segment_anchor(depth_m, box, config, rows, cols), (rows, cols))
+
+
+def segment_at(
+    depth_m: np.ndarray, box: Box, config: FeatureConfig, anchor: float, pixels: tuple[np.ndarray, np.ndarray]
+) -> Segmented:
+    """The box's ``pixels`` (rows, cols) in the gap-free depth segment around ``anchor``, and its ``DepthSegment``
+    (None when no pixel is in it)."""
+    rows, cols = pixels
     depths = depth_m[rows, cols]
     keep = dominant_depth_mask(depths, anchor, config.gap_m)
     if not keep.any():
