@@ -23,6 +23,7 @@ from perception.features import (
     Segmented,
     box_pixels,
     depth_segment,
+    in_box,
     overlap,
     segment_at,
 )
@@ -51,22 +52,22 @@ def anchored_on(found: Sequence[Segmented], labels: Sequence[str], margin_m: flo
     """Per detection (its ``depth_segment`` and label), the boxes of the detections of other labels that its
     segment shows rather than its own object (``explains``), unless its own explains theirs as well (one object
     detected twice, under two labels: each keeps its view)."""
-    n = len(found)
+    segs = [f[2] for f in found]
     shows = [
-        [
-            i != j and labels[i] != labels[j] and (s := found[j][2]) is not None and explains(found[i], s, margin_m)
-            for j in range(n)
-        ]
-        for i in range(n)
+        [i != j and labels[i] != labels[j] and s is not None and explains(m, s, margin_m) for j, s in enumerate(segs)]
+        for i, m in enumerate(found)
     ]
-    return [[found[j][2].box for j in range(n) if shows[i][j] and not shows[j][i]] for i in range(n)]  # type: ignore[union-attr]
+    return [
+        [s.box for j, s in enumerate(segs) if s is not None and shows[i][j] and not shows[j][i]]
+        for i in range(len(found))
+    ]
 
 
 def outside(rows: np.ndarray, cols: np.ndarray, boxes: Sequence[Box]) -> np.ndarray:
     """Which pixels (rows, cols) lie in none of ``boxes``."""
     out = np.ones(len(rows), bool)
-    for x1, y1, x2, y2 in boxes:
-        out &= ~((cols >= x1) & (cols < x2) & (rows >= y1) & (rows < y2))
+    for box in boxes:
+        out &= ~in_box(rows, cols, box)
     return out
 
 

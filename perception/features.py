@@ -232,9 +232,14 @@ def in_front(
         held, larger = overlap(own.box, o.box)
         if o.anchor >= own.anchor - margin_m or held >= AROUND or larger >= LARGER:
             continue
-        x1, y1, x2, y2 = o.box
-        out |= (cols >= x1) & (cols < x2) & (rows >= y1) & (rows < y2) & (depths >= o.near) & (depths <= o.far)
+        out |= in_box(rows, cols, o.box) & (depths >= o.near) & (depths <= o.far)
     return out
+
+
+def in_box(rows: np.ndarray, cols: np.ndarray, box: Box) -> np.ndarray:
+    """Which pixels (rows, cols) lie inside ``box`` (x1 <= col < x2, y1 <= row < y2)."""
+    x1, y1, x2, y2 = box
+    return (cols >= x1) & (cols < x2) & (rows >= y1) & (rows < y2)
 
 
 def overlap(box: Box, other: Box) -> tuple[float, float]:
