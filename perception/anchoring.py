@@ -45,7 +45,7 @@ def explains(mine: Segmented, other: DepthSegment, margin_m: float) -> bool:
     held, larger = overlap(own.box, other.box)
     if held >= AROUND or larger >= LARGER:
         return False
-    return len(rows) > 0 and 1.0 - outside(rows, cols, [other.box]).mean() >= EXPLAINED
+    return len(rows) > 0 and in_box(rows, cols, other.box).mean() >= EXPLAINED
 
 
 def anchored_on(found: Sequence[Segmented], labels: Sequence[str], margin_m: float) -> list[list[Box]]:
@@ -76,15 +76,14 @@ def reanchored(depth_m: np.ndarray, segmented: Segmented, config: FeatureConfig,
     pixels outside them when its centre has none); no segment when none is left."""
     rows, cols, own = segmented
     assert own is not None
+    every = box_pixels(depth_m, own.box, most=config.pixels)
     cr, cc = box_pixels(depth_m, own.box, config.anchor_fraction, most=config.pixels)
     free = outside(cr, cc, boxes)
     if not free.any():
-        cr, cc = box_pixels(depth_m, own.box, most=config.pixels)
-        free = outside(cr, cc, boxes)
+        (cr, cc), free = every, outside(*every, boxes)
     if not free.any():
         return rows[:0], cols[:0], None
-    anchor = float(np.median(depth_m[cr[free], cc[free]]))
-    return segment_at(depth_m, own.box, config, anchor, box_pixels(depth_m, own.box, most=config.pixels))
+    return segment_at(depth_m, own.box, config, float(np.median(depth_m[cr[free], cc[free]])), every)
 
 
 def anchored_segments(depth_m: np.ndarray, boxes: Sequence[tuple[Box, str]], config: FeatureConfig) -> list[Segmented]:
