@@ -50,7 +50,8 @@ class ClusterConfig:
     """Same-class clusters whose pooled Gaussians are within this distance D are one object (partial views)."""
     coincident: float = 1.5
     """Same-class objects whose centres are closer than this many median standard deviations of the smaller
-    one's extent are one (``perception.coincident``; its own measure, not ``axis_scale``); 0: never."""
+    one's extent are one (``perception.coincident``; its own measure, not ``axis_scale``), and so are objects of
+    two labels the same size and far closer (``coincident.RELABELLED``); 0: never."""
 
 
 @dataclass(frozen=True)

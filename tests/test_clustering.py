@@ -226,6 +226,37 @@ def test_same_class_objects_standing_in_one_place_are_one_but_neighbours_in_a_ro
     assert coincident_groups(labels, means, covs, 0.0) == [[0], [1], [2], [3], [4]]
 
 
+def test_one_object_under_two_labels_is_one_but_a_cup_on_a_book_and_a_plant_in_a_vase_stay_two() -> None:
+    from perception.coincident import coincident_groups
+
+    mug = np.diag([0.027, 0.028, 0.03]) ** 2
+    book = np.diag([0.1, 0.07, 0.01]) ** 2
+    plant, vase = np.diag([0.12, 0.12, 0.2]) ** 2, np.diag([0.05, 0.05, 0.08]) ** 2
+    means = np.array([[0.0, 0, 0.8], [0.011, 0, 0.8], [1.0, 0, 0.75], [1.0, 0.01, 0.8], [2.0, 0, 0.6], [2.0, 0, 0.35]])
+    covs = np.array([mug, mug, book, mug, plant, vase])
+    labels = ["cup", "bowl", "book", "cup", "potted plant", "vase"]
+    # the mug seen as a cup and as a bowl, 1 cm apart and as large: one; a cup on a book (5 cm above its centre,
+    # far smaller) and a plant above its vase stay two
+    assert coincident_groups(labels, means, covs, 1.5) == [[0, 1], [2], [3], [4], [5]]
+    # the same pair 3 cm apart (beyond half its reach) stays two: two objects of two classes side by side
+    means[1, 0] = 0.03
+    assert coincident_groups(labels, means, covs, 1.5) == [[0], [1], [2], [3], [4], [5]]
+
+
+def test_the_clusterer_names_an_object_seen_under_two_labels_by_its_larger_cluster() -> None:
+    clusterer = Clusterer(ClusterConfig(min_cluster_size=3, min_samples=3))
+    rng = np.random.default_rng(7)
+    views = [
+        FeatureVector(np.array([0.2, -0.2, 1.7]) + rng.normal(0, 0.003, 3), np.diag([0.028] * 3) ** 2, 40, label, k)
+        for k, label in enumerate(["cup"] * 12 + ["bowl"] * 5)
+    ]
+    clusterer.add(views)
+    objects = clusterer.recluster()
+    assert [(o.label, o.n_observations) for o in objects] == [("cup", 17)]
+    clusterer.config = ClusterConfig(min_cluster_size=3, min_samples=3, coincident=0.0)
+    assert sorted(o.label for o in clusterer.recluster()) == ["bowl", "cup"]
+
+
 def test_the_clusterer_joins_two_clusters_of_one_chair_that_share_a_keyframe() -> None:
     """Two clusters 0.1 m apart, each holding a view of one keyframe (the cannot-link kept them apart): one
     chair; a chair 0.65 m away in the same keyframes stays its own."""
