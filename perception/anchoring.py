@@ -18,13 +18,11 @@ from perception.features import (
     AROUND,
     LARGER,
     Box,
-    DepthSegment,
     FeatureConfig,
     Segmented,
     box_pixels,
     depth_segment,
     in_box,
-    overlap,
     segment_at,
 )
 
@@ -33,34 +31,79 @@ EXPLAINED = 0.8
 (``anchored_on``)."""
 
 
-def explains(mine: Segmented, other: DepthSegment, margin_m: float) -> bool:
-    """Whether ``other``'s detection is what segment ``mine`` shows: anchored within the other's segment (its
-    depths, ``margin_m`` either side: a plant's leaves before a refrigerator's box lie nearer than the plant's own
-    anchor), ``EXPLAINED`` of its pixels inside the other's box, and the other's box neither around its own
-    (``features.AROUND``) nor far larger (``features.LARGER``): a bottle on a table shows the bottle, whose
-    pixels lie in the table's box."""
-    rows, cols, own = mine
-    if own is None or not other.near - margin_m <= own.anchor <= other.far + margin_m:
-        return False
-    held, larger = overlap(own.box, other.box)
-    if held >= AROUND or larger >= LARGER:
-        return False
-    return len(rows) > 0 and in_box(rows, cols, other.box).mean() >= EXPLAINED
+class PixelCounts:
+    """How many of a segment's pixels (rows, cols) lie inside boxes, in constant time per box: a summed-area
+    table over the regular grid the pixels lie on (``features.box_pixels`` takes a box's pixels at one stride).
+    Built once per segment, so testing every pair of N detections costs N tables and N^2 lookups, not N^2 passes
+    over the pixels."""
+
+    def __init__(self, rows: np.ndarray, cols: np.ndarray) -> None:
+        self.r0, self.c0, self.step = 0, 0, 1
+        self.table = np.zeros((1, 1), np.int64)
+        if len(rows) == 0:
+            return
+        self.r0, self.c0 = int(rows.min()), int(cols.min())
+        self.step = int(np.gcd.reduce(np.r_[rows - self.r0, cols - self.c0])) or 1
+        gr, gc = (rows - self.r0) // self.step, (cols - self.c0) // self.step
+        shape = (int(gr.max()) + 1, int(gc.max()) + 1)
+        grid = np.bincount(gr * shape[1] + gc, minlength=shape[0] * shape[1]).reshape(shape)
+        self.table = np.zeros((shape[0] + 1, shape[1] + 1), np.int64)
+        self.table[1:, 1:] = grid.cumsum(0).cumsum(1)
+
+    def inside(self, boxes: np.ndarray) -> np.ndarray:
+        """How many of the pixels ``features.in_box`` counts inside each box (rows of x1, y1, x2, y2)."""
+        boxes = np.asarray(boxes, float).reshape(-1, 4)
+        h, w = self.table.shape[0] - 1, self.table.shape[1] - 1
+        # the grid cells whose pixel satisfies x1 <= col < x2 (and likewise rows): from ceil((x1 - c0) / step)
+        # on, up to but not including ceil((x2 - c0) / step)
+        cols = np.clip(np.ceil((boxes[:, [0, 2]] - self.c0) / self.step), 0, w).astype(int)
+        rows = np.clip(np.ceil((boxes[:, [1, 3]] - self.r0) / self.step), 0, h).astype(int)
+        cols[:, 1], rows[:, 1] = np.maximum(cols[:, 1], cols[:, 0]), np.maximum(rows[:, 1], rows[:, 0])
+        (a1, a2), (b1, b2), t = cols.T, rows.T, self.table
+        return t[b2, a2] - t[b1, a2] - t[b2, a1] + t[b1, a1]
+
+
+def explains(found: Sequence[Segmented], margin_m: float) -> np.ndarray:
+    """Which detection's object each segment shows (``[i, j]``: segment ``i`` shows detection ``j``'s): anchored
+    within ``j``'s segment (its depths, ``margin_m`` either side: a plant's leaves before a refrigerator's box lie
+    nearer than the plant's own anchor), ``EXPLAINED`` of its pixels inside ``j``'s box, and ``j``'s box neither
+    around its own (``features.AROUND``) nor far larger (``features.LARGER``): a bottle on a table shows the
+    bottle, whose pixels lie in the table's box. The box tests run on all pairs at once, the pixel counts
+    (``PixelCounts``) only on the pairs they leave: a pass over the pixels per pair cost 0.45 s per keyframe for
+    100 overlapping detections."""
+    n = len(found)
+    shows = np.zeros((n, n), bool)
+    picked = [(k, seg) for k, (rows, _, seg) in enumerate(found) if seg is not None and len(rows) > 0]
+    valid, segs = [k for k, _ in picked], [seg for _, seg in picked]
+    if len(segs) < 2:
+        return shows
+    box = np.array([s.box for s in segs], float)
+    anchor, near, far = (np.array([getattr(s, name) for s in segs]) for name in ("anchor", "near", "far"))
+    area = np.maximum((box[:, 2] - box[:, 0]) * (box[:, 3] - box[:, 1]), 1e-9)
+    x1, y1 = np.maximum(box[:, None, 0], box[None, :, 0]), np.maximum(box[:, None, 1], box[None, :, 1])
+    x2, y2 = np.minimum(box[:, None, 2], box[None, :, 2]), np.minimum(box[:, None, 3], box[None, :, 3])
+    held = np.clip(x2 - x1, 0.0, None) * np.clip(y2 - y1, 0.0, None) / area[:, None]  # as ``features.overlap``
+    larger = area[None, :] / area[:, None]
+    within = (near[None, :] - margin_m <= anchor[:, None]) & (anchor[:, None] <= far[None, :] + margin_m)
+    maybe = within & (held < AROUND) & (larger < LARGER)
+    np.fill_diagonal(maybe, False)
+    for a in np.flatnonzero(maybe.any(1)):
+        rows, cols, _ = found[valid[a]]
+        others = np.flatnonzero(maybe[a])
+        inside = PixelCounts(rows, cols).inside(box[others])
+        shows[valid[a], [valid[b] for b in others]] = inside / len(rows) >= EXPLAINED
+    return shows
 
 
 def anchored_on(found: Sequence[Segmented], labels: Sequence[str], margin_m: float) -> list[list[Box]]:
     """Per detection (its ``depth_segment`` and label), the boxes of the detections of other labels that its
-    segment shows rather than its own object (``explains``), unless its own explains theirs as well (one object
+    segment shows rather than its own object (``explains``), unless its own shows theirs as well (one object
     detected twice, under two labels: each keeps its view)."""
-    segs = [f[2] for f in found]
-    shows = [
-        [i != j and labels[i] != labels[j] and s is not None and explains(m, s, margin_m) for j, s in enumerate(segs)]
-        for i, m in enumerate(found)
-    ]
-    return [
-        [s.box for j, s in enumerate(segs) if s is not None and shows[i][j] and not shows[j][i]]
-        for i in range(len(found))
-    ]
+    named = np.array(labels, object)
+    shows = explains(found, margin_m) & (named[:, None] != named[None, :])
+    only = shows & ~shows.T  # a detection shows only detections with a segment
+    boxes = {k: seg.box for k, (_, _, seg) in enumerate(found) if seg is not None}
+    return [[boxes[int(j)] for j in np.flatnonzero(row)] for row in only]
 
 
 def outside(rows: np.ndarray, cols: np.ndarray, boxes: Sequence[Box]) -> np.ndarray:

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from perception.anchoring import anchored_on, anchored_segments
-from perception.features import FeatureConfig, depth_segment
+from perception.anchoring import PixelCounts, anchored_on, anchored_segments
+from perception.features import FeatureConfig, depth_segment, in_box
 
 
 def _wall(z: float = 4.0, shape: tuple[int, int] = (60, 80)) -> np.ndarray:
@@ -86,3 +88,21 @@ def test_one_object_detected_under_two_labels_keeps_both_views() -> None:
     plain = [depth_segment(depth, b, cfg, label) for b, label in boxes]
     assert anchored_on(plain, [label for _, label in boxes], cfg.gap_m) == [[], []]
     assert all(s is not None for _, _, s in anchored_segments(depth, boxes, cfg))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    origin=st.tuples(st.integers(0, 40), st.integers(0, 40)),
+    step=st.integers(1, 5),
+    shape=st.tuples(st.integers(1, 12), st.integers(1, 12)),
+    seed=st.integers(0, 2**32 - 1),
+    box=st.tuples(*[st.one_of(st.integers(-10, 110).map(float), st.floats(-10.0, 110.0, allow_nan=False))] * 4),
+)
+def test_pixel_counts_in_a_box_equal_the_pixels_in_box_finds(origin, step, shape, seed, box) -> None:
+    """The summed-area count of a segment's pixels inside a box is ``in_box``'s, for pixels on a strided grid
+    (any subset of it, repeats included) and boxes anywhere, fractional, empty or inverted."""
+    rng = np.random.default_rng(seed)
+    gr, gc = np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    pick = rng.integers(0, gr.size, size=rng.integers(1, gr.size + 3))
+    rows, cols = origin[0] + step * gr.ravel()[pick], origin[1] + step * gc.ravel()[pick]
+    assert PixelCounts(rows, cols).inside(np.array([box]))[0] == int(in_box(rows, cols, box).sum())
