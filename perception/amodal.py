@@ -29,6 +29,7 @@ from perception.features import (
     stride_subsample,
 )
 from perception.floor import with_span
+from perception.pixel_grid import grid_of
 from perception.support import split_support
 
 NO_RETURN_SHARE = 0.2
@@ -207,9 +208,7 @@ def local_mean_depth(depth_m: np.ndarray, rows: np.ndarray, cols: np.ndarray, ra
     z = depth_m[rows, cols].astype(np.float64)
     if radius <= 0 or len(rows) < 2:
         return z
-    r0, c0 = int(rows.min()), int(cols.min())
-    step = int(np.gcd.reduce(np.r_[rows - r0, cols - c0])) or 1
-    gr, gc = (rows - r0) // step, (cols - c0) // step
+    gr, gc = grid_of(rows, cols)[3:]
     total, count = np.zeros((2, int(gr.max()) + 1, int(gc.max()) + 1))
     total[gr, gc], count[gr, gc] = z, 1.0
     size = 2 * radius + 1  # the filters' common normalisation cancels in the ratio

@@ -25,6 +25,7 @@ from perception.features import (
     in_box,
     segment_at,
 )
+from perception.pixel_grid import grid_of
 
 EXPLAINED = 0.8
 """A segment with this share of its pixels inside another detection's box shows that one's object
@@ -33,7 +34,7 @@ EXPLAINED = 0.8
 
 class PixelCounts:
     """How many of a segment's pixels (rows, cols) lie inside boxes, in constant time per box: a summed-area
-    table over the regular grid the pixels lie on (``features.box_pixels`` takes a box's pixels at one stride).
+    table over the regular grid the pixels lie on (``pixel_grid``).
     Built once per segment, so testing every pair of N detections costs N tables and N^2 lookups, not N^2 passes
     over the pixels."""
 
@@ -42,9 +43,7 @@ class PixelCounts:
         self.table = np.zeros((1, 1), np.int64)
         if len(rows) == 0:
             return
-        self.r0, self.c0 = int(rows.min()), int(cols.min())
-        self.step = int(np.gcd.reduce(np.r_[rows - self.r0, cols - self.c0])) or 1
-        gr, gc = (rows - self.r0) // self.step, (cols - self.c0) // self.step
+        self.r0, self.c0, self.step, gr, gc = grid_of(rows, cols)
         shape = (int(gr.max()) + 1, int(gc.max()) + 1)
         grid = np.bincount(gr * shape[1] + gc, minlength=shape[0] * shape[1]).reshape(shape)
         self.table = np.zeros((shape[0] + 1, shape[1] + 1), np.int64)
