@@ -5,7 +5,10 @@ another detected object covers (a potted plant before a refrigerator or a couch,
 back) is anchored on that object, and its view puts its own object where the other stands: on the development
 seeds 0-35, such views made a "couch" or a "refrigerator" on a potted plant and "chairs" on plants. A segment whose
 pixels lie in another detection's box, anchored within that one's depths, shows it (``explains``); it is anchored
-again on its centre's pixels outside that box (``reanchored``), which are its own object's or none.
+again on its centre's pixels outside that box (``reanchored``), which are its own object's or none. This holds
+for detections of one class too: in a row of chairs seen along the row, the front chair covers the centre of
+every box behind it, and the back chairs' views put them where the front one stands (development seed 15: the
+views of chairs at x = 1.25, 1.73 and 2.20 m lay at 2.12, 2.56 and 2.69 m, the front chair at 2.68 m).
 """
 
 from __future__ import annotations
@@ -94,12 +97,11 @@ def explains(found: Sequence[Segmented], margin_m: float) -> np.ndarray:
     return shows
 
 
-def anchored_on(found: Sequence[Segmented], labels: Sequence[str], margin_m: float) -> list[list[Box]]:
-    """Per detection (its ``depth_segment`` and label), the boxes of the detections of other labels that its
-    segment shows rather than its own object (``explains``), unless its own shows theirs as well (one object
-    detected twice, under two labels: each keeps its view)."""
-    named = np.array(labels, object)
-    shows = explains(found, margin_m) & (named[:, None] != named[None, :])
+def anchored_on(found: Sequence[Segmented], margin_m: float) -> list[list[Box]]:
+    """Per detection (its ``depth_segment``), the boxes of the other detections that its segment shows rather
+    than its own object (``explains``), unless its own shows theirs as well (one object detected twice, under
+    two labels: each keeps its view)."""
+    shows = explains(found, margin_m)
     only = shows & ~shows.T  # a detection shows only detections with a segment
     boxes = {k: seg.box for k, (_, _, seg) in enumerate(found) if seg is not None}
     return [[boxes[int(j)] for j in np.flatnonzero(row)] for row in only]
@@ -132,5 +134,5 @@ def anchored_segments(depth_m: np.ndarray, boxes: Sequence[tuple[Box, str]], con
     """Each detection's (box, label) ``depth_segment``, anchored again off the detections it shows instead of its
     own object (``anchored_on``)."""
     found = [depth_segment(depth_m, box, config, label) for box, label in boxes]
-    under = anchored_on(found, [label for _, label in boxes], config.gap_m)
+    under = anchored_on(found, config.gap_m)
     return [reanchored(depth_m, f, config, u) if u else f for f, u in zip(found, under, strict=True)]

@@ -33,6 +33,23 @@ def test_a_refrigerator_behind_a_plant_is_anchored_on_itself_not_on_the_plant() 
     assert abs(small.anchor - 2.0) < 0.01 and small.far < 2.05  # the plant keeps its own
 
 
+def test_the_back_chair_of_a_row_is_anchored_on_its_own_sides_not_on_the_chair_in_front() -> None:
+    """Two chairs seen along their row: the front one 2.0 m away covers the middle of the back one's box, whose
+    own surface 3.0 m away shows either side of it. The back box's segment alone is the front chair's; anchored
+    again off the front chair's box it is the back chair's."""
+    depth = _wall()
+    depth[10:50, 30:70] = 3.0  # the back chair
+    depth[10:50, 40:60] = 2.0  # the chair in front, before its middle
+    front, back = (40.0, 10.0, 60.0, 50.0), (30.0, 10.0, 70.0, 50.0)
+    cfg = FeatureConfig()
+    alone = depth_segment(depth, back, cfg, "chair")[2]
+    assert alone is not None and alone.far < 2.1  # on its own, the back box's segment is the front chair
+    (rows, cols, own), (_, _, first) = anchored_segments(depth, [(back, "chair"), (front, "chair")], cfg)
+    assert own is not None and first is not None
+    assert abs(own.anchor - 3.0) < 0.01 and np.all(depth[rows, cols] > 2.95)
+    assert abs(first.anchor - 2.0) < 0.01 and first.far < 2.05  # the front chair keeps its own
+
+
 def test_a_table_anchored_on_its_own_top_keeps_its_segment_with_a_cup_on_it() -> None:
     """A cup on the far part of a table top: the table's centre shows the table, so nothing changes; nor does a
     box that only touches the table's (not inside it)."""
@@ -46,7 +63,7 @@ def test_a_table_anchored_on_its_own_top_keeps_its_segment_with_a_cup_on_it() ->
     for (r0, c0, s0), (r1, c1, s1) in zip(plain, again, strict=True):
         assert s0 == s1 and np.array_equal(r0, r1) and np.array_equal(c0, c1)
     assert plain[0][2] is not None and plain[1][2] is not None
-    assert anchored_on(plain, ["dining table", "cup"], cfg.gap_m) == [[], []]
+    assert anchored_on(plain, cfg.gap_m) == [[], []]
 
 
 def test_a_bottle_standing_above_a_tables_box_keeps_its_own_segment() -> None:
@@ -60,7 +77,7 @@ def test_a_bottle_standing_above_a_tables_box_keeps_its_own_segment() -> None:
     cfg = FeatureConfig()
     plain = [depth_segment(depth, b, cfg, label) for b, label in ((table, "dining table"), (bottle, "bottle"))]
     assert plain[1][2] is not None and abs(plain[1][2].anchor - 2.0) < 0.01
-    assert anchored_on(plain, ["dining table", "bottle"], cfg.gap_m) == [[], []]
+    assert anchored_on(plain, cfg.gap_m) == [[], []]
     (_, _, own), _ = anchored_segments(depth, [(bottle, "bottle"), (table, "dining table")], cfg)
     assert own == plain[1][2]
 
@@ -86,7 +103,7 @@ def test_one_object_detected_under_two_labels_keeps_both_views() -> None:
     boxes = [((20.0, 10.0, 60.0, 50.0), "chair"), ((21.0, 11.0, 59.0, 50.0), "couch")]
     cfg = FeatureConfig()
     plain = [depth_segment(depth, b, cfg, label) for b, label in boxes]
-    assert anchored_on(plain, [label for _, label in boxes], cfg.gap_m) == [[], []]
+    assert anchored_on(plain, cfg.gap_m) == [[], []]
     assert all(s is not None for _, _, s in anchored_segments(depth, boxes, cfg))
 
 
