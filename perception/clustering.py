@@ -14,8 +14,9 @@ from dataclasses import dataclass, field, replace
 import hdbscan
 import numpy as np
 
+from perception.cannot_link import split_all
 from perception.coincident import coincident_groups
-from perception.features import FeatureVector, merge_features, mixture
+from perception.features import FeatureVector, merge_features
 from perception.track_retirement import compacted
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,8 @@ class ClusterConfig:
     """Same-class objects whose centres are closer than this many median standard deviations of the smaller
     one's extent are one (``perception.coincident``; its own measure, not ``axis_scale``), and so are objects of
     two labels the same size and far closer (``coincident.RELABELLED``); 0: never."""
+    split_shared: bool = True
+    """Cut a cluster that holds two views of one keyframe in many of its keyframes (``perception.cannot_link``)."""
 
 
 @dataclass(frozen=True)
@@ -195,41 +198,6 @@ def merge_overlapping(
     return list(groups.values())
 
 
-PARTS_STD_M = 0.35
-"""Views whose own extent exceeds this standard deviation (a uniform extent of 1.2 m: tables, couches, beds) are
-parts of a large object rather than noisy copies of a whole one (``robust_gaussian``)."""
-
-
-def robust_gaussian(
-    means: np.ndarray,
-    covs: np.ndarray,
-    weights: np.ndarray,
-    huber_m: float = 0.1,
-    iterations: int = 20,
-    parts_std_m: float = PARTS_STD_M,
-) -> tuple[np.ndarray, np.ndarray]:
-    """An object's centre and covariance from its views' Gaussians (N, 3) / (N, 3, 3) with ``weights`` (N,):
-    the weighted geometric median of their means (Weiszfeld), and their mean covariance with the views farther
-    than ``huber_m`` from it down-weighted (Huber). A few views of another object (a segment that caught the
-    neighbouring chair, a track NPDA carried over to it) then pull the object little, where they pull the
-    pooled mean (``merge_features``) in proportion to their number. The spread of a whole object's view centres
-    about its centre is their error, not its extent, and is left out (development seeds 0-15: small objects
-    came out 1.3-1.6 x their size with it; median IoU 0.617 -> 0.623, worst decile 0.476 -> 0.510). A large
-    object (the views' mean covariance wider than ``parts_std_m``) is seen in parts, each view a different one:
-    its views are pooled as they are, spread included, since the median of parts is the part seen most. (Views
-    cut small by the image border escape this test: the 7-Scenes kitchen table, seen in such parts, lies 0.70 m
-    off, 0.48 m with pooled views.)"""
-    n = np.asarray(weights, float)
-    w = n / n.sum()
-    centre = w @ means
-    if float(np.linalg.eigvalsh(np.einsum("n,nij->ij", w, covs))[-1]) > parts_std_m**2:  # parts of a large object
-        return mixture(means, covs, n)
-    for _ in range(iterations):
-        centre = np.average(means, axis=0, weights=n / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-3))
-    w = n * np.minimum(1.0, huber_m / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-9))
-    return centre, np.einsum("n,nij->ij", w / w.sum(), covs)
-
-
 Locate = Callable[[Sequence[FeatureVector]], "tuple[np.ndarray, np.ndarray] | None"]
 """An object's centre and covariance from its cluster's members (``ObjectMapper``: ``robust_gaussian``, stretched
 to the floor), or None to keep the pooled Gaussian's."""
@@ -343,7 +311,7 @@ class Clusterer:
         ]
         if self.config.merge_distance > 0:
             clusters = merge_overlapping(clusters, self.config, self.keyframe_of)
-        clusters = sorted(clusters, key=len, reverse=True)
+        clusters = sorted(self._cut(clusters), key=len, reverse=True)
         objects = self._carry_ids(clusters)
         if self.config.coincident > 0 and len(objects) > 1:
             groups = coincident_groups(
@@ -354,14 +322,22 @@ class Clusterer:
             )
             if len(groups) < len(objects):
                 made = {id(c): o for c, o in zip(clusters, objects, strict=True)}  # the clusters left as they were
-                joined = [clusters[g[0]] if len(g) == 1 else [f for i in g for f in clusters[i]] for g in groups]
-                clusters = sorted(joined, key=len, reverse=True)
+                one = [[f for i in g for f in clusters[i]] for g in groups]  # a joined group is cut if it must be
+                clusters = sorted(
+                    [c for g in one for c in (self._cut([g]) if len(g) > 1 else [g])], key=len, reverse=True
+                )
                 objects = self._carry_ids(clusters, made)
         self.objects = objects
         self.reclusterings += 1
         self._fit = self._out = self._new = 0
         log.debug("re-clustered %d feature vectors into %d objects", len(self.features), len(self.objects))
         return self.objects
+
+    def _cut(self, clusters: list[list[FeatureVector]]) -> list[list[FeatureVector]]:
+        """Clusters that hold two views of one keyframe cut apart (``perception.cannot_link``), if configured."""
+        if not (self.config.split_shared and self.keyframe_of):
+            return clusters
+        return split_all(clusters, self.keyframe_of, self.config.min_cluster_size, self.config.coincident)
 
     def _compact(self, live: Collection[int]) -> None:
         """At most ``max_features`` vectors where pooling allows (``perception.track_retirement``)."""

@@ -35,8 +35,11 @@ SAME_SIZE = 1.5
 def coincident_groups(labels: Sequence[str], means: np.ndarray, covs: np.ndarray, stds: float) -> list[list[int]]:
     """Groups of object indices to join: same label, centres closer than the smaller of their reaches
     (``extent_radius`` of ``stds``); or different labels, centres closer than ``RELABELLED`` of that and reaches
-    within ``SAME_SIZE`` of each other; transitively. Every index is in exactly one group, in order."""
+    within ``SAME_SIZE`` of each other; transitively. Every index is in exactly one group, in order; with
+    ``stds`` 0, each its own."""
     n = len(labels)
+    if stds <= 0:
+        return [[i] for i in range(n)]
     radius = [extent_radius(c, stds) for c in covs]
     parent = list(range(n))
 

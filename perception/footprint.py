@@ -1,4 +1,5 @@
-"""The footprint of a large object seen in parts: the union of its views' extents across the floor (issue 24).
+"""Where an object lies from its views: robust to the few that are another object's (``robust_gaussian``), and
+for a large object seen in parts, the union of its views' extents across the floor (issue 24).
 
 A dining table, a couch, a bed or a screen is wider than most views show: the image border cuts it, chairs and
 clutter hide parts, and a walk past it sees one end for many keyframes and the other for a few. Pooled, its
@@ -22,6 +23,41 @@ import numpy as np
 
 from perception.features import mixture
 from perception.floor import view_ends, weighted_quantile
+
+PARTS_STD_M = 0.35
+"""Views whose own extent exceeds this standard deviation (a uniform extent of 1.2 m: tables, couches, beds) are
+parts of a large object rather than noisy copies of a whole one (``robust_gaussian``)."""
+
+
+def robust_gaussian(
+    means: np.ndarray,
+    covs: np.ndarray,
+    weights: np.ndarray,
+    huber_m: float = 0.1,
+    iterations: int = 20,
+    parts_std_m: float = PARTS_STD_M,
+) -> tuple[np.ndarray, np.ndarray]:
+    """An object's centre and covariance from its views' Gaussians (N, 3) / (N, 3, 3) with ``weights`` (N,):
+    the weighted geometric median of their means (Weiszfeld), and their mean covariance with the views farther
+    than ``huber_m`` from it down-weighted (Huber). A few views of another object (a segment that caught the
+    neighbouring chair, a track NPDA carried over to it) then pull the object little, where they pull the
+    pooled mean (``merge_features``) in proportion to their number. The spread of a whole object's view centres
+    about its centre is their error, not its extent, and is left out (development seeds 0-15: small objects
+    came out 1.3-1.6 x their size with it; median IoU 0.617 -> 0.623, worst decile 0.476 -> 0.510). A large
+    object (the views' mean covariance wider than ``parts_std_m``) is seen in parts, each view a different one:
+    its views are pooled as they are, spread included, since the median of parts is the part seen most. (Views
+    cut small by the image border escape this test: the 7-Scenes kitchen table, seen in such parts, lies 0.70 m
+    off, 0.48 m with pooled views.)"""
+    n = np.asarray(weights, float)
+    w = n / n.sum()
+    centre = w @ means
+    if float(np.linalg.eigvalsh(np.einsum("n,nij->ij", w, covs))[-1]) > parts_std_m**2:  # parts of a large object
+        return mixture(means, covs, n)
+    for _ in range(iterations):
+        centre = np.average(means, axis=0, weights=n / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-3))
+    w = n * np.minimum(1.0, huber_m / np.maximum(np.linalg.norm(means - centre, axis=1), 1e-9))
+    return centre, np.einsum("n,nij->ij", w / w.sum(), covs)
+
 
 LARGE_CLASSES: frozenset[str] = frozenset({"dining table", "couch", "bed", "tv"})
 """COCO classes whose instances are usually wider than a metre and seen in parts."""

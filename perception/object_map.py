@@ -11,7 +11,7 @@ from graph.geometry import inverse
 from perception.amodal import cut_by_border, cut_vertically, detection_feature
 from perception.anchoring import anchored_segments
 from perception.camera import Intrinsics
-from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid, robust_gaussian
+from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
 from perception.features import (
     FeatureConfig,
     FeatureVector,
@@ -29,7 +29,7 @@ from perception.floor import (
     with_span,
     world_floor_view,
 )
-from perception.footprint import LARGE_CLASSES, union_footprint
+from perception.footprint import LARGE_CLASSES, robust_gaussian, union_footprint
 from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
 from perception.tracks import Tracker

@@ -13,9 +13,9 @@ from perception.clustering import (
     cluster_labels,
     ellipsoid,
     merge_overlapping,
-    robust_gaussian,
 )
 from perception.features import FeatureVector, merge_features, merge_track_runs, repooled
+from perception.footprint import robust_gaussian
 
 
 def _feature(mean, var, label: str = "chair", track: int = 0, n: int = 100) -> FeatureVector:

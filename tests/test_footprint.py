@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from perception.clustering import robust_gaussian
-from perception.footprint import horizontal_axes, union_footprint
+from perception.footprint import horizontal_axes, robust_gaussian, union_footprint
 
 UP = np.array([0.0, 0.0, 1.0])
 CENTRE = np.array([2.0, 1.0, 0.7])
