@@ -11,7 +11,16 @@ vectors' centres, started from the two vectors of one keyframe that lie farthest
 kept when its parts are clusters (``min_size`` vectors each) and it parts the views of at least ``RESOLVED`` of
 those keyframes. A row of four is cut in four: as many parts as views a few of its keyframes hold, started from
 that pair and each time the vector farthest from those chosen (so a track window that pooled a view of each of
-two chairs, between them, joins one of them rather than starting a part).
+two chairs, between them, joins one of them rather than starting a part). Parts that would stand in one place
+(``perception.coincident``) are not made: two clusters of one chair that each hold views of its neighbour are
+joined there and stay joined.
+
+The cut needs views that lie at their own chairs: with the back chairs of a row anchored on the front one, the
+views of all lay at the front chair and no cut parted them (development seeds 0-35, the cut alone: pairs at
+0.5 m unchanged at 107 of 114, false objects 15 -> 20). With every detection's segment anchored off the
+detections it shows, same class included (``perception.anchoring``): mapped 96.8 / 90.5 -> 100.0 / 91.6 %,
+pairs at 0.5 m 107 -> 110 of 114, false objects 15 -> 22 (worst decile 5.9 -> 7.0 %), IoU 0.674 and centroid
+error 0.039 m unchanged.
 
 Pure computation, no I/O.
 """
