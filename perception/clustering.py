@@ -322,10 +322,8 @@ class Clusterer:
             )
             if len(groups) < len(objects):
                 made = {id(c): o for c, o in zip(clusters, objects, strict=True)}  # the clusters left as they were
-                one = [[f for i in g for f in clusters[i]] for g in groups]  # a joined group is cut if it must be
-                clusters = sorted(
-                    [c for g in one for c in (self._cut([g]) if len(g) > 1 else [g])], key=len, reverse=True
-                )
+                joined = [clusters[g[0]] if len(g) == 1 else [f for i in g for f in clusters[i]] for g in groups]
+                clusters = sorted(self._cut(joined), key=len, reverse=True)  # a joined group, a part left whole
                 objects = self._carry_ids(clusters, made)
         self.objects = objects
         self.reclusterings += 1
