@@ -2,7 +2,7 @@
 
 HDBSCAN groups feature vectors by their distance alone. In a row of chairs 0.5 m apart, NPDA carries tracks from
 one chair to its neighbour, their track windows bridge the gap, and one cluster can take the row: on development
-seed 15 one "chair" held the views of four chairs, two or more of them in 70 of its 89 keyframes. A cluster of
+seed 15 one "chair" held the views of four chairs, two or more of them in 68-70 of its 89 keyframes. A cluster of
 one object holds one view per keyframe (the detector's non-maximum suppression keeps one box per object and
 class); on the same seeds the clusters of one object held two views of a keyframe in at most 1 of 91.
 ``merge_overlapping`` already keeps such clusters from being joined; here a cluster that holds two views of a
