@@ -45,7 +45,8 @@ RESOLVED = 0.5
 """A cut is kept when it leaves at most this share of those keyframes with two views in one part."""
 
 
-def _frames(members: Sequence[FeatureVector], keyframe_of: Sequence[int]) -> list[set[int]]:
+def keyframe_sets(members: Sequence[FeatureVector], keyframe_of: Sequence[int]) -> list[set[int]]:
+    """The keyframes of each feature vector's observations (``keyframe_of[s]`` for each of its ``sources``)."""
     return [{keyframe_of[s] for s in f.sources if s < len(keyframe_of)} for f in members]
 
 
@@ -108,11 +109,11 @@ def split_by_keyframes(
     the views ``SHARED_LEAST`` of its keyframes hold, or fewer when that many are not clusters (``min_size``
     vectors each) or two of them stand in one place (``perception.coincident`` with ``stds``: the views of one
     chair and of its neighbour that two clusters of it each hold are not cut back into those)."""
-    frames = _frames(members, keyframe_of)
-    shared, seen = shared_keyframes(frames)
-    if shared < SHARED_LEAST or shared < SHARED_SHARE * seen or len(members) < 2 * min_size:
-        return [members]
+    frames = keyframe_sets(members, keyframe_of)
     counts = sorted(Counter(f for fs in frames for f in fs).values(), reverse=True)
+    shared = sum(c > 1 for c in counts)
+    if shared < SHARED_LEAST or shared < SHARED_SHARE * len(counts) or len(members) < 2 * min_size:
+        return [members]
     means, weights = np.stack([f.mean for f in members]), np.array([f.n for f in members], float)
     for k in range(min(counts[SHARED_LEAST - 1], len(members) // min_size), 1, -1):
         side = _k_means(means, weights, _seeds(means, frames, k))

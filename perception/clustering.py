@@ -14,7 +14,7 @@ from dataclasses import dataclass, field, replace
 import hdbscan
 import numpy as np
 
-from perception.cannot_link import split_all
+from perception.cannot_link import keyframe_sets, split_all
 from perception.coincident import coincident_groups
 from perception.features import FeatureVector, merge_features
 from perception.track_retirement import compacted
@@ -171,7 +171,7 @@ def merge_overlapping(
     chair to its neighbour does not keep the views of either chair apart."""
     pooled = [merge_features(c) for c in clusters]
     parent = list(range(len(clusters)))
-    frames = [{keyframe_of[s] for f in c for s in f.sources if s < len(keyframe_of)} for c in clusters]
+    frames = [set().union(*keyframe_sets(c, keyframe_of)) for c in clusters]
 
     def root(i: int) -> int:
         while parent[i] != i:
