@@ -41,12 +41,13 @@ def bench_live_spread(
     frames: FramesOpt = 1000,
     rate: RateOpt = 30.0,
     step: Annotated[
-        float, typer.Option("--step", help="share by which each keyframe threshold moves", min=0.0, max=0.5)
-    ] = 0.1,
+        list[float] | None,
+        typer.Option("--step", help="share by which each keyframe threshold moves (repeatable)", min=0.0, max=0.5),
+    ] = None,
     write: WriteOpt = None,
 ) -> None:
     """Live against offline ATE under the service's keyframe rule and that rule with its translation or
     rotation threshold a step lower or higher: how closely one live run can be held to one offline run."""
     from bench.live_spread import run_spread_bench
 
-    run_spread_bench(console, list(dataset or LIVE_DATASETS[:1]), frames, rate, step, write)
+    run_spread_bench(console, list(dataset or LIVE_DATASETS[:1]), frames, rate, list(step or [0.1]), write)

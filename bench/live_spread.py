@@ -28,15 +28,16 @@ STEP = 0.1
 """The keyframe rule's thresholds are moved by this share either way."""
 
 
-def rules(step: float = STEP) -> dict[str, KeyframeSettings]:
-    """The service's keyframe rule and, one at a time, its translation and rotation thresholds ``step`` lower
-    and higher."""
+def rules(*steps: float) -> dict[str, KeyframeSettings]:
+    """The service's keyframe rule and, one at a time, its translation and rotation thresholds each of ``steps``
+    (default ``STEP``) lower and higher."""
     base = KeyframeSettings()
     out = {"the service's rule": base}
-    for field, unit in (("translation_m", "m"), ("rotation_deg", "deg")):
-        for sign in (-1, 1):
-            value = round(getattr(base, field) * (1 + sign * step), 6)
-            out[f"{field} {value:g} {unit}"] = base.model_copy(update={field: value})
+    for step in steps or (STEP,):
+        for field, unit in (("translation_m", "m"), ("rotation_deg", "deg")):
+            for sign in (-1, 1):
+                value = round(getattr(base, field) * (1 + sign * step), 6)
+                out[f"{field} {value:g} {unit}"] = base.model_copy(update={field: value})
     return out
 
 
@@ -46,12 +47,14 @@ def env_of(rule: KeyframeSettings) -> dict[str, str]:
     return {f"OBJSLAM_KEYFRAMES__{k.upper()}": str(v) for k, v in rule.model_dump().items() if v != getattr(base, k)}
 
 
-def measure_spread(dataset: str, frames: int, rate_hz: float, step: float = STEP) -> list[dict[str, Any]]:
+def measure_spread(
+    dataset: str, frames: int, rate_hz: float, steps: tuple[float, ...] = (STEP,)
+) -> list[dict[str, Any]]:
     """Per keyframe rule: the offline ATE, and the live run's ATE at the stream's end and settled (m)."""
     bare = first_frames(dataset, frames)
     payloads = [encode_frame(bare.frame(i)) for i in range(len(bare))]
     out = []
-    for name, rule in rules(step).items():
+    for name, rule in rules(*steps).items():
         offline = offline_ate(dataset, len(payloads), rule)
         env = {"OBJSLAM_INGEST__LIVE": "true", **env_of(rule)}
         with tempfile.TemporaryDirectory() as state:
@@ -79,7 +82,8 @@ def _median(values: list[float | None]) -> float | None:
 
 
 def spread_rows(dataset: str, results: list[dict[str, Any]]) -> list[list[str]]:
-    """A row per rule, then the medians over the rules."""
+    """A row per rule, then the medians over the rules and the median of the rules' live - offline differences
+    (paired: each live run against the offline run of its own rule)."""
     diffs = [_minus(r["live_settled"], r["offline"]) for r in results]
     rows = [
         [f"`{dataset}`", r["rule"], _cm(r["offline"]), _cm(r["live_end"]), _cm(r["live_settled"]), _cm(d)]
@@ -98,6 +102,9 @@ def spread_rows(dataset: str, results: list[dict[str, Any]]) -> list[list[str]]:
             _cm(diff),
         ]
     )
+    rows.append(
+        [f"`{dataset}`", f"**median of the {len(results)} differences**", "", "", "", f"**{_cm(_median(diffs))}**"]
+    )
     return rows
 
 
@@ -112,9 +119,9 @@ HEADER = [
 
 
 def run_spread_bench(
-    console: Console, datasets: list[str], frames: int, rate_hz: float, step: float, write: Path | None
+    console: Console, datasets: list[str], frames: int, rate_hz: float, steps: list[float], write: Path | None
 ) -> list[dict[str, Any]]:
-    results = {d: measure_spread(d, frames, rate_hz, step) for d in datasets}
+    results = {d: measure_spread(d, frames, rate_hz, tuple(steps)) for d in datasets}
     rows = [row for d, rs in results.items() for row in spread_rows(d, rs)]
     table = markdown_table(HEADER, rows)
     show_table(console, "live against offline as the keyframe rule moves", HEADER, rows)
@@ -122,10 +129,12 @@ def run_spread_bench(
     notes = (
         f"Each dataset's first {frames} frames, bare (no odometry, no detections), run offline (`objslam run`: "
         f"every frame in order) and live (`serve --live`, published at {rate_hz:g} Hz as in `bench live`) under "
-        f"the service's keyframe rule and under that rule with its translation or rotation threshold {step:.0%} "
-        "lower or higher (`keyframes.translation_m`, `keyframes.rotation_deg`). Live ATE settled: once the "
-        "pause after the stream has moved the graph to its batch optimum (`ingest.polish_after_s`). Offline ATE "
-        f"over the rules: {min(offline) * 100:.2f}-{max(offline) * 100:.2f} cm."
+        f"the service's keyframe rule and under that rule with its translation or rotation threshold "
+        f"{' / '.join(f'{s:.0%}' for s in steps)} lower or higher (`keyframes.translation_m`, "
+        "`keyframes.rotation_deg`). Live ATE settled: once the pause after the stream has moved the graph to its "
+        "batch optimum (`ingest.polish_after_s`). The last row: the median over the rules of each live run's ATE "
+        "less the offline run's of its own rule. Offline ATE over the rules: "
+        f"{min(offline) * 100:.2f}-{max(offline) * 100:.2f} cm."
         if offline
         else ""
     )
@@ -133,7 +142,8 @@ def run_spread_bench(
     path = record(
         "live-spread",
         "Live against offline as the keyframe rule moves",
-        f"objslam bench live-spread {spec} --frames {frames} --rate {rate_hz:g} --step {step:g}",
+        f"objslam bench live-spread {spec} --frames {frames} --rate {rate_hz:g} "
+        + " ".join(f"--step {s:g}" for s in steps),
         table,
         notes,
         write,

@@ -38,8 +38,15 @@ def test_the_summary_row_takes_the_medians_and_counts_the_rules_live_did_no_wors
         {"rule": "c", "offline": 0.042, "live_end": 0.041, "live_settled": 0.039},
     ]
     rows = spread_rows("d", results)
-    assert len(rows) == 4
-    summary = rows[-1]
+    assert len(rows) == 5
+    summary = rows[-2]
     assert "live settled <= offline in 2" in summary[1]
     assert summary[2] == "**4.00**" and summary[4] == "**3.90**"
     assert summary[5] == "-0.10"
+    assert rows[-1][5] == "**-0.20**"  # the paired differences +0.10, -0.20, -0.30
+
+
+def test_several_steps_share_the_service_rule_once() -> None:
+    moved = rules(0.05, 0.1, 0.2)
+    assert len(moved) == 13
+    assert len(set(map(str, moved.values()))) == 13
