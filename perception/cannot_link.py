@@ -77,7 +77,7 @@ def _k_means(means: np.ndarray, weights: np.ndarray, seeds: list[int], iteration
 
 def _seeds(means: np.ndarray, frames: Sequence[set[int]], k: int) -> list[int]:
     """``k`` feature vectors to start from: the two of one keyframe that lie farthest apart, then each time the
-    one farthest from those chosen."""
+    one farthest from those chosen (so the first ``j`` of them are the seeds for ``j`` parts)."""
     by_frame: dict[int, list[int]] = {}
     for i, fs in enumerate(frames):
         for f in fs:
@@ -115,8 +115,10 @@ def split_by_keyframes(
     if shared < SHARED_LEAST or shared < SHARED_SHARE * len(counts) or len(members) < 2 * min_size:
         return [members]
     means, weights = np.stack([f.mean for f in members]), np.array([f.n for f in members], float)
-    for k in range(min(counts[SHARED_LEAST - 1], len(members) // min_size), 1, -1):
-        side = _k_means(means, weights, _seeds(means, frames, k))
+    most = min(counts[SHARED_LEAST - 1], len(members) // min_size)
+    seeds = _seeds(means, frames, most)
+    for k in range(most, 1, -1):
+        side = _k_means(means, weights, seeds[:k])
         parts = [[f for f, s in zip(members, side, strict=True) if s == g] for g in range(k)]
         left = sum(shared_keyframes([fs for fs, s in zip(frames, side, strict=True) if s == g])[0] for g in range(k))
         if min(len(p) for p in parts) >= min_size and left <= RESOLVED * shared and _apart(parts, stds):
