@@ -102,10 +102,26 @@ def spread_rows(dataset: str, results: list[dict[str, Any]]) -> list[list[str]]:
             _cm(diff),
         ]
     )
+    known = [d for d in diffs if d is not None]
+    lo, hi = median_interval(known) if known else (None, None)
     rows.append(
-        [f"`{dataset}`", f"**median of the {len(results)} differences**", "", "", "", f"**{_cm(_median(diffs))}**"]
+        [
+            f"`{dataset}`",
+            f"**median of the {len(known)} differences** (95 % bootstrap interval {_cm(lo)} to {_cm(hi)})",
+            "",
+            "",
+            "",
+            f"**{_cm(_median(diffs))}**",
+        ]
     )
     return rows
+
+
+def median_interval(values: list[float], draws: int = 20000, seed: int = 0) -> tuple[float, float]:
+    """The 95 % bootstrap interval of the median of ``values`` (resampled with replacement, a fixed seed)."""
+    samples = np.random.default_rng(seed).choice(np.asarray(values, float), (draws, len(values)))
+    lo, hi = np.percentile(np.median(samples, axis=1), [2.5, 97.5])
+    return float(lo), float(hi)
 
 
 HEADER = [

@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
-from bench.live_spread import env_of, rules, spread_rows
+from bench.live_spread import env_of, median_interval, rules, spread_rows
 from perception.keyframing import KeyframeSettings
 from service.config import Settings
 
@@ -44,6 +45,16 @@ def test_the_summary_row_takes_the_medians_and_counts_the_rules_live_did_no_wors
     assert summary[2] == "**4.00**" and summary[4] == "**3.90**"
     assert summary[5] == "-0.10"
     assert rows[-1][5] == "**-0.20**"  # the paired differences +0.10, -0.20, -0.30
+    assert "interval -0.30 to 0.10" in rows[-1][1]
+
+
+def test_the_bootstrap_interval_of_the_median_holds_it_and_narrows_with_more_values() -> None:
+    rng = np.random.default_rng(1)
+    few, many = rng.normal(0.1, 0.3, 9), rng.normal(0.1, 0.3, 400)
+    lo, hi = median_interval(list(few))
+    assert lo <= float(np.median(few)) <= hi
+    lo2, hi2 = median_interval(list(many))
+    assert hi2 - lo2 < (hi - lo) / 3 and lo2 < 0.1 < hi2
 
 
 def test_several_steps_share_the_service_rule_once() -> None:
