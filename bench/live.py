@@ -116,10 +116,20 @@ def settled_trajectory(session: Any, key: str, status: dict[str, Any]) -> dict[s
 def offline_ate(dataset: str, frames: int, keyframes: KeyframeSettings | None = None) -> float | None:
     """ATE (m) of ``objslam run`` on the same frames without their odometry and detections (every frame), with
     the keyframe rule ``keyframes`` (default: the service's)."""
+    return offline_ate_of(offline_summary(dataset, frames, keyframes))
+
+
+def offline_summary(dataset: str, frames: int, keyframes: KeyframeSettings | None = None) -> dict[str, Any]:
+    """The run summary of ``objslam run`` on the same frames without their odometry and detections (every
+    frame), with the keyframe rule ``keyframes`` (default: the service's)."""
     bare = first_frames(dataset, frames)
     settings = Settings(viewer=ViewerSettings(enabled=False), keyframes=keyframes or KeyframeSettings())
     with tempfile.TemporaryDirectory() as out:
-        summary = run_dataset(bare, Path(out), settings, progress=False)
+        return run_dataset(bare, Path(out), settings, progress=False)
+
+
+def offline_ate_of(summary: dict[str, Any]) -> float | None:
+    """The trajectory ATE (m) of a run summary, None when it has none."""
     ate = summary.get("ate", {}).get("trajectory", {}).get("ate_rmse_m")
     return float(ate) if ate is not None else None
 

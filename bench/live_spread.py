@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from rich.console import Console
 
-from bench.live import _cm, _trajectory, first_frames, offline_ate, serve_live
+from bench.live import _cm, _trajectory, first_frames, offline_ate_of, offline_summary, serve_live
 from bench.report import markdown_table, record, show_table
 from evaluation.trajectory_metrics import evaluate
 from perception.keyframing import KeyframeSettings
@@ -55,16 +55,18 @@ def measure_spread(
     payloads = [encode_frame(bare.frame(i)) for i in range(len(bare))]
     out = []
     for name, rule in rules(*steps).items():
-        offline = offline_ate(dataset, len(payloads), rule)
+        summary = offline_summary(dataset, len(payloads), rule)
         env = {"OBJSLAM_INGEST__LIVE": "true", **env_of(rule)}
         with tempfile.TemporaryDirectory() as state:
-            _, reply, settled, _ = serve_live(payloads, rate_hz, {**env, "OBJSLAM_STATE_DIR": state}, settle=True)
+            status, reply, settled, _ = serve_live(payloads, rate_hz, {**env, "OBJSLAM_STATE_DIR": state}, settle=True)
         end = evaluate(_trajectory(reply), bare.ground_truth)
         calm = evaluate(_trajectory(settled), bare.ground_truth) if settled is not None else None
         out.append(
             {
                 "rule": name,
-                "offline": offline,
+                "offline": offline_ate_of(summary),
+                "keyframes": (summary.get("keyframes"), status.get("keyframes")),
+                "loops": (summary.get("loop_closures"), status.get("loop_closures", {}).get("accepted")),
                 "live_end": end.ate_rmse_m if end is not None else None,
                 "live_settled": calm.ate_rmse_m if calm is not None else None,
             }
@@ -86,7 +88,16 @@ def spread_rows(dataset: str, results: list[dict[str, Any]]) -> list[list[str]]:
     (paired: each live run against the offline run of its own rule)."""
     diffs = [_minus(r["live_settled"], r["offline"]) for r in results]
     rows = [
-        [f"`{dataset}`", r["rule"], _cm(r["offline"]), _cm(r["live_end"]), _cm(r["live_settled"]), _cm(d)]
+        [
+            f"`{dataset}`",
+            r["rule"],
+            _cm(r["offline"]),
+            _cm(r["live_end"]),
+            _cm(r["live_settled"]),
+            _cm(d),
+            _pair(r.get("keyframes")),
+            _pair(r.get("loops")),
+        ]
         for r, d in zip(results, diffs, strict=True)
     ]
     med = {k: _median([r[k] for r in results]) for k in ("offline", "live_end", "live_settled")}
@@ -100,6 +111,8 @@ def spread_rows(dataset: str, results: list[dict[str, Any]]) -> list[list[str]]:
             _cm(med["live_end"]),
             f"**{_cm(med['live_settled'])}**",
             _cm(diff),
+            "",
+            "",
         ]
     )
     known = [d for d in diffs if d is not None]
@@ -112,9 +125,16 @@ def spread_rows(dataset: str, results: list[dict[str, Any]]) -> list[list[str]]:
             "",
             "",
             f"**{_cm(_median(diffs))}**",
+            "",
+            "",
         ]
     )
     return rows
+
+
+def _pair(values: tuple[Any, Any] | None) -> str:
+    """``offline / live`` counts, ``-`` for one not known."""
+    return " / ".join("-" if v is None else str(v) for v in (values or (None, None)))
 
 
 def median_interval(values: list[float], draws: int = 20000, seed: int = 0) -> tuple[float, float]:
@@ -131,6 +151,8 @@ HEADER = [
     "live ATE at the end (cm)",
     "live ATE settled (cm)",
     "settled - offline (cm)",
+    "keyframes offline / live",
+    "loop closures offline / live",
 ]
 
 

@@ -34,7 +34,14 @@ def test_the_environment_gives_serve_the_rule(name: str, monkeypatch: pytest.Mon
 
 def test_the_summary_row_takes_the_medians_and_counts_the_rules_live_did_no_worse() -> None:
     results = [
-        {"rule": "a", "offline": 0.040, "live_end": 0.045, "live_settled": 0.041},
+        {
+            "rule": "a",
+            "offline": 0.040,
+            "live_end": 0.045,
+            "live_settled": 0.041,
+            "keyframes": (130, 127),
+            "loops": (9, None),
+        },
         {"rule": "b", "offline": 0.038, "live_end": 0.040, "live_settled": 0.036},
         {"rule": "c", "offline": 0.042, "live_end": 0.041, "live_settled": 0.039},
     ]
@@ -46,6 +53,7 @@ def test_the_summary_row_takes_the_medians_and_counts_the_rules_live_did_no_wors
     assert summary[5] == "-0.10"
     assert rows[-1][5] == "**-0.20**"  # the paired differences +0.10, -0.20, -0.30
     assert "interval -0.30 to 0.10" in rows[-1][1]
+    assert rows[0][6:] == ["130 / 127", "9 / -"] and rows[1][6:] == ["- / -", "- / -"]
 
 
 def test_the_bootstrap_interval_of_the_median_holds_it_and_narrows_with_more_values() -> None:
