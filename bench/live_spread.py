@@ -3,10 +3,12 @@ little (issue 28).
 
 Which frames become keyframes decides the graph, its loop closures and so the ATE. ``serve --live`` decides them
 while tracking goes on (keyframes are made beside it), so its keyframes are not those of ``objslam run``, which
-takes every frame in order. How far the offline ATE itself moves when the rule moves by a tenth (the translation
-or the rotation threshold 10 % lower or higher) says how closely a single live run can be held to a single
-offline one. Here both run under each rule: the same frames (bare, as in ``bench live``), offline first, then live
-at the camera rate into a ``serve`` subprocess, settled after the stream; the summary compares the medians.
+takes every frame in order. How far the offline ATE itself moves when the rule moves a little (the translation or
+the rotation threshold a step, 10 % by default, lower or higher; several steps give more rules) says how closely a
+single live run can be held to a single offline one. Here both run under each rule: the same frames (bare, as in
+``bench live``), offline first, then live at the camera rate into a ``serve`` subprocess, settled after the
+stream, with each run's keyframes and accepted loop closures. The summary compares the medians, and gives the
+median of the paired differences (live less offline under one rule) with its 95 % bootstrap interval.
 """
 
 from __future__ import annotations
