@@ -21,15 +21,18 @@ from perception.features import (
 )
 from perception.floor import (
     FLOOR_CLASSES,
+    SCREEN_ASPECT,
     Floor,
     FloorConfig,
+    ends_seen,
     level_plane,
     on_floor,
+    screen_span,
     vertical_span,
     with_span,
     world_floor_view,
 )
-from perception.footprint import LARGE_CLASSES, robust_gaussian, union_footprint
+from perception.footprint import LARGE_CLASSES, horizontal_axes, robust_gaussian, union_footprint
 from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
 from perception.tracks import Tracker
@@ -214,6 +217,10 @@ class ObjectMapper:
         if floor is not None and all(f.sources for f in members):
             cut = np.array([[all(self._obs_cut[x][k] for x in f.sources) for k in (0, 1)] for f in members])
             span = vertical_span(means, covs, n, floor.up, cut)
+            if span is not None and members[0].label in SCREEN_ASPECT:
+                wide = horizontal_axes(cov, floor.up)[0]
+                height = SCREEN_ASPECT[members[0].label] * float(np.sqrt(12.0 * wide @ cov @ wide))
+                span = screen_span(span, ends_seen(cut), height)
             if span is not None:
                 mean, cov = with_span(mean, cov, floor.up, *span)
         return mean, cov

@@ -8,10 +8,22 @@ room), the floor is found from the keyframes and the chair reaches down to it.
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from perception.amodal import vertical_extent
-from perception.floor import Floor, FloorConfig, level_plane, on_floor, vertical_span, with_span, world_floor_view
+from perception.floor import (
+    SCREEN_ASPECT,
+    Floor,
+    FloorConfig,
+    ends_seen,
+    level_plane,
+    on_floor,
+    screen_span,
+    vertical_span,
+    with_span,
+    world_floor_view,
+)
 from perception.frame import Detection
 from perception.object_map import ObjectMapper
 from sources.base import ObjectTruth
@@ -163,3 +175,35 @@ def test_a_view_over_a_wide_table_finds_the_floor_beyond_it_not_the_table_top() 
     assert abs(foot[2]) < 0.02  # the floor, z = 0
     only_top = level_plane(depth, K, FloorConfig(lower_span_m=20.0))  # no lower surface is wide enough
     assert only_top is not None and abs(world_floor_view(only_top, pose)[1][2] - 0.75) < 0.02
+
+
+def test_a_screen_whose_top_no_view_sees_is_as_tall_as_its_width_says_from_its_bottom() -> None:
+    cut = np.array([[True, False]] * 5 + [[False, False]] * 2)  # the image's top edge cuts 5 of 7 views
+    assert ends_seen(cut) == (False, True)
+    assert screen_span((1.0, 1.3), ends_seen(cut), 0.6) == pytest.approx((1.0, 1.6))
+    assert screen_span((1.0, 1.3), (True, False), 0.6) == pytest.approx((0.7, 1.3))  # only the top seen
+    assert screen_span((1.0, 1.3), (True, True), 0.6) == (1.0, 1.3)  # both ends seen: as measured
+    assert screen_span((1.0, 1.3), (False, False), 0.6) == (1.0, 1.3)  # neither: no end to start from
+    assert screen_span((1.0, 1.7), (False, True), 0.6) == (1.0, 1.7)  # taller than the prior already
+    assert SCREEN_ASPECT["tv"] == pytest.approx(9 / 16)
+
+
+def test_a_wall_screen_above_every_view_s_top_edge_is_as_tall_as_a_screen_of_its_width() -> None:
+    """A 1.2 m wide screen from 1.16 to 1.84 m on a wall, seen from 2.5 m by a camera at 1.5 m looking 22 degrees
+    down: the image's top edge cuts it at about 1.6 m in every view, so no view sees its top. Its height is then
+    its width's (``SCREEN_ASPECT``) from the bottom the views see, not the span of what they show."""
+    screen = ObjectTruth(5, "tv", (4.5, 8.92, 1.5), (1.2, 0.06, 0.675), 0.0)
+    renderer = Renderer(surfaces([screen]), K, W, H)
+    mapper = ObjectMapper()
+    poses = looking_at((4.5, 8.95, 0.5), np.radians(np.linspace(-110.0, -70.0, 12)), 2.5, 1.5)
+    for i, pose in enumerate(poses):
+        r = renderer.render(pose)
+        depth = np.where(r.depth > 0, r.depth, np.nan).astype(np.float32)
+        box = mask_box(r.ids == screen.id)
+        assert box[1] <= 1  # the image's top edge cuts the screen
+        mapper.add_keyframe(i, [Detection("tv", 0.9, box)], depth, K, pose)
+    objects = [o for o in mapper.finish() if o.label == "tv"]
+    assert mapper.floor is not None and len(objects) == 1
+    assert abs(objects[0].mean[2] - screen.center[2]) < 0.04
+    height = np.sqrt(12.0 * objects[0].cov[2, 2])
+    assert abs(height - 9.0 / 16.0 * 1.2) < 0.06
