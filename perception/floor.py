@@ -5,7 +5,9 @@ keyframe contributes the dominant level plane of its lower half (``level_plane``
 world by the keyframe's pose, the lowest height that many keyframes agree on is the floor and the median
 normal of those planes is "up" (``Floor.estimate``). Furniture that stands on the floor (``FLOOR_CLASSES``) then
 reaches down to it (``on_floor``): a chair near a downward-looking camera has its legs cut off by the image's
-lower edge in every view, and its visible part alone puts its centre 5-10 cm too high.
+lower edge in every view, and its visible part alone puts its centre 5-10 cm too high. Other objects reach from
+the bottom to the top that their views see whole (``vertical_span``); a screen whose top no view sees is as tall
+as a screen of its width says (``screen_span``).
 
 Pure computation, no I/O.
 """
