@@ -237,7 +237,7 @@ def detection_feature(
     if config.amodal is None or len(points) < 3:
         return feature_from_points(points, label, track_id)
     smooth = local_mean_depth(depth_m, rows, cols, config.near_radius)[idx]
-    return complete_amodal(
+    f = complete_amodal(
         points,
         label,
         track_id,
@@ -248,3 +248,20 @@ def detection_feature(
         up=up,
         support=support,
     )
+    if f is None or up is None or label not in PANEL_DEPTH_M:
+        return f
+    return FeatureVector(*spanning_box(f.mean, f.cov, box, K, up), f.n, f.label, f.track_id, f.sources)
+
+
+def spanning_box(
+    mean: np.ndarray, cov: np.ndarray, box: Box, K: Intrinsics, up: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """A panel's camera-frame Gaussian reaching along ``up`` at least from its box's bottom edge to its top edge,
+    at its centre's depth: a screen's glass returns no depth over much of it (the 7-Scenes monitors: their upper
+    part, so that their views' points end below their tops and the monitors lay 0.16-0.19 m low), while the
+    detector's box holds the whole screen."""
+    x = (0.5 * (box[0] + box[2]) - K.cx) / K.fx * mean[2]
+    edges = [np.array([x, (v - K.cy) / K.fy * mean[2], mean[2]]) @ up for v in (box[1], box[3])]
+    half = float(np.sqrt(3.0 * max(float(up @ cov @ up), 0.0)))
+    centre = float(mean @ up)
+    return with_span(mean, cov, up, min(centre - half, *edges), max(centre + half, *edges))
