@@ -378,3 +378,20 @@ def test_a_screen_on_a_wall_is_as_deep_as_it_stands_off_the_wall() -> None:
     thin = np.sqrt(12.0 * np.linalg.eigvalsh(f.cov[plane])[0])
     assert thin < 0.07  # the depth prior's 10 cm, behind a face seen at a slant, would be 8 cm thick here
     assert np.linalg.norm(f.mean[[0, 2]] - (face + thick / 2 * normal)) < 0.02
+
+
+def test_a_screen_whose_glass_returns_depth_only_low_down_reaches_its_box_s_top() -> None:
+    """A screen 2 m away whose box spans rows 10-40 (0.6 m), of which only rows 25-40 return depth (glass): its
+    view reaches from the box's bottom edge to its top edge at its depth, not from the returns' bottom to their
+    top; without an up it stays as its points are."""
+    depth = _plane_depth(2.1)
+    depth[25:40, 20:60] = 2.0  # the lower half of the screen returns depth
+    depth[10:25, 20:60] = np.nan  # its upper half, glass, none
+    up = np.array([0.0, -1.0, 0.0])
+    f = detection_feature(depth, K, (20.0, 10.0, 60.0, 40.0), "tv", 1, FeatureConfig(support_tilt_deg=None), up=up)
+    assert f is not None
+    top, bottom = -(10 - K.cy) / K.fy * f.mean[2], -(40 - K.cy) / K.fy * f.mean[2]
+    assert f.mean @ up == pytest.approx((top + bottom) / 2, abs=0.02)
+    assert np.sqrt(12 * up @ f.cov @ up) == pytest.approx(top - bottom, abs=0.03)
+    plain = detection_feature(depth, K, (20.0, 10.0, 60.0, 40.0), "tv", 1, FeatureConfig(support_tilt_deg=None))
+    assert plain is not None and np.sqrt(12 * plain.cov[1, 1]) < 0.4
