@@ -28,7 +28,7 @@ from perception.features import (
     ring_windows,
     stride_subsample,
 )
-from perception.floor import with_span
+from perception.floor import view_ends, with_span
 from perception.pixel_grid import grid_of
 from perception.support import split_support
 
@@ -262,6 +262,5 @@ def spanning_box(
     detector's box holds the whole screen."""
     x = (0.5 * (box[0] + box[2]) - K.cx) / K.fx * mean[2]
     edges = [np.array([x, (v - K.cy) / K.fy * mean[2], mean[2]]) @ up for v in (box[1], box[3])]
-    half = float(np.sqrt(3.0 * max(float(up @ cov @ up), 0.0)))
-    centre = float(mean @ up)
-    return with_span(mean, cov, up, min(centre - half, *edges), max(centre + half, *edges))
+    (top,), (bottom,) = view_ends(mean[None], cov[None], up)
+    return with_span(mean, cov, up, min(float(bottom), *edges), max(float(top), *edges))
