@@ -113,6 +113,7 @@ def complete_amodal(
     reference: np.ndarray | None = None,
     up: np.ndarray | None = None,
     support: np.ndarray | None = None,
+    edges: np.ndarray | None = None,
 ) -> FeatureVector | None:
     """A camera-frame view's feature vector completed behind its visible surface.
 
@@ -163,7 +164,7 @@ def complete_amodal(
         cov = P @ f.cov @ P + depth**2 / 12.0 * np.outer(ray, ray)
     if level:
         assert up is not None
-        mean = centred_across(mean, smooth, np.cross(up, ray))
+        mean = centred_across(mean, smooth if edges is None else edges, np.cross(up, ray))
         mean, cov = with_span(mean, cov, up, *vertical_extent(smooth @ up, mean - (mean @ up) * up, up, support))
     return FeatureVector(mean, cov, f.n, label, track_id, f.sources)
 
@@ -174,6 +175,21 @@ def centred_across(mean: np.ndarray, points: np.ndarray, side: np.ndarray) -> np
     where most of them are (a chair seen from its side, to its back)."""
     lo, hi = np.percentile(points @ side, [2, 98])
     return mean + ((lo + hi) / 2.0 - mean @ side) * side
+
+
+EDGE_SHARE = 0.1
+"""The points within this share of a box's width of a view's leftmost (rightmost) point give the depth of its
+left (right) edge (``box_edges``)."""
+
+
+def box_edges(box: Box, K: Intrinsics, cols: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    """Camera-frame points (2, 3) on a box's left and right edges' rays, at the depth of the view's points
+    (columns ``cols``, depths ``depth``) nearest each edge: the object's ends across the image, whatever of its
+    middle the depth segment caught or missed (a neighbour's pixels, an occluder)."""
+    reach = EDGE_SHARE * (box[2] - box[0])
+    z = [float(np.median(depth[sel])) for sel in (cols <= cols.min() + reach, cols >= cols.max() - reach)]
+    row = 0.5 * (box[1] + box[3])
+    return np.array([[(x - K.cx) / K.fx * d, (row - K.cy) / K.fy * d, d] for x, d in zip(box[::2], z, strict=True)])
 
 
 def panel(face: FeatureVector | None, ray: np.ndarray, depth: float) -> tuple[np.ndarray, np.ndarray]:
@@ -247,6 +263,7 @@ def detection_feature(
         reference=pixels_to_points(cols[idx], rows[idx], smooth, K),
         up=up,
         support=support,
+        edges=None if cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0] else box_edges(box, K, cols[idx], smooth),
     )
     if f is None or up is None or label not in PANEL_DEPTH_M:
         return f
