@@ -32,6 +32,8 @@ from perception.floor import view_ends, with_span
 from perception.pixel_grid import grid_of
 from perception.support import split_support
 
+LARGE = frozenset({"dining table", "couch", "bed", "tv"})
+
 NO_RETURN_SHARE = 0.2
 """A ring around a box with more than this share of pixels without depth does not bound the room behind the object
 (``room_behind``). Chairs 4-5 m away with the synthetic sensor's 4 m range had their far side bounded by the
@@ -263,7 +265,9 @@ def detection_feature(
         reference=pixels_to_points(cols[idx], rows[idx], smooth, K),
         up=up,
         support=support,
-        edges=None if cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0] else box_edges(box, K, cols[idx], smooth),
+        edges=None
+        if cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0] or label in PANEL_DEPTH_M or label in LARGE
+        else box_edges(box, K, cols[idx], smooth),
     )
     if f is None or up is None or label not in PANEL_DEPTH_M:
         return f
