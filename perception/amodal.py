@@ -29,10 +29,9 @@ from perception.features import (
     stride_subsample,
 )
 from perception.floor import view_ends, with_span
+from perception.footprint import LARGE_CLASSES
 from perception.pixel_grid import grid_of
 from perception.support import split_support
-
-LARGE = frozenset({"dining table", "couch", "bed", "tv"})
 
 NO_RETURN_SHARE = 0.2
 """A ring around a box with more than this share of pixels without depth does not bound the room behind the object
@@ -143,6 +142,9 @@ def complete_amodal(
     the slanted ray moved its centre down and towards the camera together), and the vertical extent is the
     points' (``vertical_extent``: percentiles, not moments, since the top face of an object seen from above
     holds many points at one height; down to the ``support`` plane ``(n, d)`` it stands on, when given).
+
+    ``edges``: points (2, 3) on the object's left and right ends (``box_edges``); across the level ray the centre
+    is then the middle of these rather than of the points' own extent.
     """
     f = feature_from_points(points, label, track_id)
     if f is None:
@@ -179,6 +181,12 @@ def centred_across(mean: np.ndarray, points: np.ndarray, side: np.ndarray) -> np
     return mean + ((lo + hi) / 2.0 - mean @ side) * side
 
 
+EDGES_OWN: frozenset[str] = frozenset(PANEL_DEPTH_M) | LARGE_CLASSES
+"""Classes whose views keep their points' own ends across the ray (``box_edges`` is not used): panels, whose
+face the points show whole, and the large classes, whose views are parts of the object
+(``footprint.union_footprint``). Development seeds 0-35 with the box's edges for every class: couches' median
+error 0.127 -> 0.169 m, the scene figures 0.001 m worse than without these."""
+
 EDGE_SHARE = 0.1
 """The points within this share of a box's width of a view's leftmost (rightmost) point give the depth of its
 left (right) edge (``box_edges``)."""
@@ -187,7 +195,10 @@ left (right) edge (``box_edges``)."""
 def box_edges(box: Box, K: Intrinsics, cols: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """Camera-frame points (2, 3) on a box's left and right edges' rays, at the depth of the view's points
     (columns ``cols``, depths ``depth``) nearest each edge: the object's ends across the image, whatever of its
-    middle the depth segment caught or missed (a neighbour's pixels, an occluder)."""
+    middle the depth segment caught or missed (a neighbour's pixels, an occluder, a part without depth). A view's
+    centre across its ray from these rather than from its points' 2nd and 98th percentiles: on development seeds
+    0-11, chair views 0.029 -> 0.018 m off across the ray in the median (the image's sides not cutting them),
+    potted plants' 0.025 -> 0.019 m; on seeds 0-35 chairs' median error 0.054 -> 0.044 m."""
     reach = EDGE_SHARE * (box[2] - box[0])
     z = [float(np.median(depth[sel])) for sel in (cols <= cols.min() + reach, cols >= cols.max() - reach)]
     row = 0.5 * (box[1] + box[3])
@@ -247,7 +258,8 @@ def detection_feature(
     """The camera-frame feature vector of a detection (amodally completed when configured, its near and far sides
     on locally averaged depth: ``FeatureConfig.near_radius``), its pixels without those of the other detections
     in front of it (``occluders``: ``features.in_front``; ``segmented``: its own ``features.depth_segment``, when
-    the caller has it); None when too few points."""
+    the caller has it), centred across its ray between its box's edges when the image's sides do not cut it
+    (``box_edges``); None when too few points."""
     pixels = object_pixels(depth_m, box, config, occluders, segmented, label)
     rows, cols, support = split_support(depth_m, K, box, *pixels, config)
     idx = stride_subsample(len(rows), config.max_points)
@@ -255,19 +267,18 @@ def detection_feature(
     if config.amodal is None or len(points) < 3:
         return feature_from_points(points, label, track_id)
     smooth = local_mean_depth(depth_m, rows, cols, config.near_radius)[idx]
+    sideways = cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0]
     f = complete_amodal(
         points,
         label,
         track_id,
         config.amodal,
         room_behind(depth_m, box, rows, cols, share=PANEL_ROOM_SHARE if label in PANEL_DEPTH_M else None),
-        cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0],
+        sideways,
         reference=pixels_to_points(cols[idx], rows[idx], smooth, K),
         up=up,
         support=support,
-        edges=None
-        if cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0] or label in PANEL_DEPTH_M or label in LARGE
-        else box_edges(box, K, cols[idx], smooth),
+        edges=None if sideways or label in EDGES_OWN else box_edges(box, K, cols[idx], smooth),
     )
     if f is None or up is None or label not in PANEL_DEPTH_M:
         return f

@@ -360,6 +360,23 @@ def test_a_chair_seen_from_its_side_is_centred_on_its_footprint_not_on_its_back(
     assert abs(f.mean[0] - middle) < 0.02
 
 
+def test_a_chair_whose_left_part_returns_no_depth_is_centred_on_its_box() -> None:
+    """A chair 2 m away whose left third (dark fabric) returns no depth: its points are the right two thirds, so
+    the middle of their extent lies 7 cm right of the chair's middle; the box holds the whole chair, and its edges'
+    rays at the depth of the points nearest them give its ends across the ray."""
+    depth = _plane_depth(4.0)
+    depth[20:50, 30:50] = 2.0  # the chair: 20 px at fx 100 = 0.4 m at 2 m
+    depth[20:50, 30:37] = np.nan  # its left third without depth
+    box, up = (30.0, 20.0, 50.0, 50.0), np.array([0.0, -1.0, 0.0])
+    cfg = FeatureConfig(support_tilt_deg=None)
+    f = detection_feature(depth, K, box, "chair", 1, cfg, up=up)
+    assert f is not None
+    middle = ((box[0] + box[2]) / 2 - K.cx) * 2.0 / K.fx
+    points = detection_feature(depth, K, box, "chair", 1, FeatureConfig(amodal=None))
+    assert points is not None and points.mean[0] - middle > 0.05  # what the points alone say
+    assert abs(f.mean[0] - middle) < 0.01
+
+
 def test_a_screen_on_a_wall_is_as_deep_as_it_stands_off_the_wall() -> None:
     """A 1 m wide screen 5 cm deep hung on a wall 3 m away, both turned 40 degrees: the screen's slanted face
     reaches 0.6 m along the ray, which is no depth behind it; the free depth behind the face is the wall's 5 cm.
