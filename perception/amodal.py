@@ -197,8 +197,9 @@ def box_edges(box: Box, K: Intrinsics, cols: np.ndarray, depth: np.ndarray) -> n
     (columns ``cols``, depths ``depth``) nearest each edge: the object's ends across the image, whatever of its
     middle the depth segment caught or missed (a neighbour's pixels, an occluder, a part without depth). A view's
     centre across its ray from these rather than from its points' 2nd and 98th percentiles: on development seeds
-    0-11, chair views 0.029 -> 0.018 m off across the ray in the median (the image's sides not cutting them),
-    potted plants' 0.025 -> 0.019 m; on seeds 0-35 chairs' median error 0.054 -> 0.044 m."""
+    0-11, chair views 0.029 -> 0.020 m off across the ray in the median (the image's sides not cutting them),
+    potted plants' 0.025 -> 0.021 m, suitcases' 0.035 -> 0.018 m; on seeds 0-35 chairs' median error 0.054 ->
+    0.044 m."""
     reach = EDGE_SHARE * (box[2] - box[0])
     z = [float(np.median(depth[sel])) for sel in (cols <= cols.min() + reach, cols >= cols.max() - reach)]
     row = 0.5 * (box[1] + box[3])
