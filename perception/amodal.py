@@ -168,7 +168,11 @@ def complete_amodal(
         cov = P @ f.cov @ P + depth**2 / 12.0 * np.outer(ray, ray)
     if level:
         assert up is not None
-        mean = centred_across(mean, smooth if edges is None else edges, np.cross(up, ray))
+        side = np.cross(up, ray)
+        if edges is None:
+            mean = centred_across(mean, smooth, side)
+        else:  # the middle of the two ends
+            mean = mean + (float(np.mean(edges @ side)) - mean @ side) * side
         mean, cov = with_span(mean, cov, up, *vertical_extent(smooth @ up, mean - (mean @ up) * up, up, support))
     return FeatureVector(mean, cov, f.n, label, track_id, f.sources)
 
