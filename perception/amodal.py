@@ -144,7 +144,13 @@ def complete_amodal(
     holds many points at one height; down to the ``support`` plane ``(n, d)`` it stands on, when given).
 
     ``edges``: points (2, 3) on the object's left and right ends (``box_edges``); across the level ray the centre
-    is then the middle of these rather than of the points' own extent.
+    is then the middle of these rather than of the points' own extent, and the object is as deep as the box is
+    wide (``edges_width``), its centre half that behind its nearest points (their 2nd percentile along the ray).
+    For a box-shaped object this holds from every side: seen face-on the box is its face's width, and seen at a
+    slant its nearest point is a corner, half the box's width in front of the centre. The points' own spread,
+    which the completion uses without the box, is their density's: the nearer face of a chair seen at a slant
+    holds more of them (development seeds 0-35: chairs 0.044 -> 0.033 m, the scenes' median error 0.036 -> 0.030
+    m; cups and bottles, 0.003-0.004 m before, 0.006-0.013 m).
     """
     f = feature_from_points(points, label, track_id)
     if f is None:
@@ -156,13 +162,19 @@ def complete_amodal(
         if np.linalg.norm(flat) > 0.3:  # not looking (nearly) straight down or up at it
             ray, level = flat / np.linalg.norm(flat), True
     smooth = points if reference is None else reference
-    near, far = np.percentile(smooth @ ray, [10, 90])
+    nearest, near, far = np.percentile(smooth @ ray, [2, 10, 90])
     if label in PANEL_DEPTH_M:
         mean, cov = panel(feature_from_points(smooth, label), ray, min(PANEL_DEPTH_M[label], room))
     else:
-        sx = float(np.sqrt(f.cov[0, 0] if not cut_sideways else max(f.cov[0, 0], f.cov[1, 1])))
-        depth = min(np.sqrt(12.0) * sx, float(far - near) + room)
-        centre = float(near) + min(shift * sx, depth / 2.0)
+        if edges is not None and level:
+            assert up is not None
+            width = edges_width(edges, float(np.median(smooth[:, 2])), np.cross(up, ray))
+            depth = min(width, float(far - near) + room)
+            centre = float(nearest) + depth / 2.0
+        else:
+            sx = float(np.sqrt(f.cov[0, 0] if not cut_sideways else max(f.cov[0, 0], f.cov[1, 1])))
+            depth = min(np.sqrt(12.0) * sx, float(far - near) + room)
+            centre = float(near) + min(shift * sx, depth / 2.0)
         P = np.eye(3) - np.outer(ray, ray)
         mean = P @ f.mean + centre * ray
         cov = P @ f.cov @ P + depth**2 / 12.0 * np.outer(ray, ray)
@@ -208,6 +220,13 @@ def box_edges(box: Box, K: Intrinsics, cols: np.ndarray, depth: np.ndarray) -> n
     z = [float(np.median(depth[sel])) for sel in (cols <= cols.min() + reach, cols >= cols.max() - reach)]
     row = 0.5 * (box[1] + box[3])
     return np.array([[(x - K.cx) / K.fx * d, (row - K.cy) / K.fy * d, d] for x, d in zip(box[::2], z, strict=True)])
+
+
+def edges_width(edges: np.ndarray, depth: float, side: np.ndarray) -> float:
+    """The extent along the unit ``side`` between the rays of two camera-frame ``edges`` (2, 3), both taken at
+    ``depth`` (the view's points' median: the depth of a single edge's few points is the noisier)."""
+    at = edges * (depth / edges[:, 2:3])
+    return abs(float((at[1] - at[0]) @ side))
 
 
 def panel(face: FeatureVector | None, ray: np.ndarray, depth: float) -> tuple[np.ndarray, np.ndarray]:
