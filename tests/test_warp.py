@@ -377,6 +377,19 @@ def test_a_chair_whose_left_part_returns_no_depth_is_centred_on_its_box() -> Non
     assert abs(f.mean[0] - middle) < 0.01
 
 
+def test_a_chair_whose_left_part_returns_no_depth_is_as_deep_as_its_box_is_wide() -> None:
+    """The same chair: its points span two thirds of it, so a depth taken from their spread is 0.26 m and its
+    centre 0.13 m behind its face; the box's width (0.4 m at 2 m) gives it its depth, the centre 0.2 m behind."""
+    depth = _plane_depth(4.0)
+    depth[20:50, 30:50] = 2.0
+    depth[20:50, 30:37] = np.nan
+    box, up = (30.0, 20.0, 50.0, 50.0), np.array([0.0, -1.0, 0.0])
+    f = detection_feature(depth, K, box, "chair", 1, FeatureConfig(support_tilt_deg=None), up=up)
+    assert f is not None
+    assert abs(f.mean[2] - 2.2) < 0.01
+    assert abs(np.sqrt(12.0 * f.cov[2, 2]) - 0.4) < 0.02
+
+
 def test_a_screen_on_a_wall_is_as_deep_as_it_stands_off_the_wall() -> None:
     """A 1 m wide screen 5 cm deep hung on a wall 3 m away, both turned 40 degrees: the screen's slanted face
     reaches 0.6 m along the ray, which is no depth behind it; the free depth behind the face is the wall's 5 cm.
