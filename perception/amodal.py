@@ -218,8 +218,7 @@ def box_edges(box: Box, K: Intrinsics, cols: np.ndarray, depth: np.ndarray) -> n
     0.044 m."""
     reach = EDGE_SHARE * (box[2] - box[0])
     z = [float(np.median(depth[sel])) for sel in (cols <= cols.min() + reach, cols >= cols.max() - reach)]
-    row = 0.5 * (box[1] + box[3])
-    return np.array([[(x - K.cx) / K.fx * d, (row - K.cy) / K.fy * d, d] for x, d in zip(box[::2], z, strict=True)])
+    return pixels_to_points(np.array(box[::2], float), np.full(2, 0.5 * (box[1] + box[3])), np.array(z), K)
 
 
 def edges_width(edges: np.ndarray, depth: float, side: np.ndarray) -> float:
@@ -316,7 +315,7 @@ def spanning_box(
     at its centre's depth: a screen's glass returns no depth over much of it (the 7-Scenes monitors: their upper
     part, so that their views' points end below their tops and the monitors lay 0.16-0.19 m low), while the
     detector's box holds the whole screen."""
-    x = (0.5 * (box[0] + box[2]) - K.cx) / K.fx * mean[2]
-    edges = [np.array([x, (v - K.cy) / K.fy * mean[2], mean[2]]) @ up for v in (box[1], box[3])]
+    middle = np.full(2, 0.5 * (box[0] + box[2]))
+    edges = pixels_to_points(middle, np.array(box[1::2], float), np.full(2, mean[2]), K) @ up
     (top,), (bottom,) = view_ends(mean[None], cov[None], up)
     return with_span(mean, cov, up, min(float(bottom), *edges), max(float(top), *edges))
