@@ -207,3 +207,30 @@ def test_a_wall_screen_above_every_view_s_top_edge_is_as_tall_as_a_screen_of_its
     assert abs(objects[0].mean[2] - screen.center[2]) < 0.04
     height = np.sqrt(12.0 * objects[0].cov[2, 2])
     assert abs(height - 9.0 / 16.0 * 1.2) < 0.06
+
+
+FRIDGE = ObjectTruth(5, "refrigerator", (4.5, 4.5, 0.9), (0.7, 0.7, 1.8), 0.3)
+
+
+def test_a_refrigerator_whose_top_most_views_cut_off_is_as_tall_as_the_views_that_see_it() -> None:
+    """Twenty-four views from 1.3 m, whose image top cuts the refrigerator's box, and four from 3 m that see it
+    whole: the tops of the near views are the image's edge, 1.5 m up, and the median of all views' tops (weighed by
+    their points, a cut view's scaled down by ``FeatureConfig.cut_weight``) put its top there."""
+    target = (FRIDGE.center[0], FRIDGE.center[1], 1.0)
+    near = looking_at(target, np.radians(np.linspace(-50.0, 50.0, 24)), 1.3, 1.4)
+    far = looking_at(target, np.radians(np.linspace(-30.0, 30.0, 4)), 3.0, 1.4)
+    renderer = Renderer(surfaces([FRIDGE]), K, W, H)
+    mapper = ObjectMapper()
+    cut = 0
+    for i, pose in enumerate(np.concatenate([near, far])):
+        r = renderer.render(pose)
+        box = mask_box(r.ids == FRIDGE.id)
+        cut += box[1] <= 0
+        depth = np.where(r.depth > 0, r.depth, np.nan).astype(np.float32)
+        mapper.add_keyframe(i, [Detection("refrigerator", 0.9, box)], depth, K, pose)
+    assert cut == len(near)  # the failure this guards against: most views' tops are the image's edge
+    (fridge,) = mapper.finish()
+    assert mapper.floor is not None
+    top = fridge.mean[2] + np.sqrt(3.0 * fridge.cov[2, 2])
+    assert abs(top - 1.8) < 0.05
+    assert abs(fridge.mean[2] - FRIDGE.center[2]) < 0.03
