@@ -10,6 +10,7 @@ vertically by its points' span down to the surface it stands on (``vertical_exte
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.ndimage import distance_transform_edt, uniform_filter
@@ -130,7 +131,7 @@ def complete_amodal(
     reference: np.ndarray | None = None,
     up: np.ndarray | None = None,
     support: np.ndarray | None = None,
-    edges: np.ndarray | None = None,
+    edges: BoxSides | None = None,
 ) -> FeatureVector | None:
     """A camera-frame view's feature vector completed behind its visible surface.
 
@@ -159,9 +160,10 @@ def complete_amodal(
     points' (``vertical_extent``: percentiles, not moments, since the top face of an object seen from above
     holds many points at one height; down to the ``support`` plane ``(n, d)`` it stands on, when given).
 
-    ``edges``: points (2, 3) on the object's left and right ends (``box_edges``); across the level ray the centre
-    is then the middle of these rather than of the points' own extent, and the object is as deep as the box is
-    wide (``edges_width``), its centre half that behind its nearest points (their 2nd percentile along the ray).
+    ``edges``: the sides of the object's box (``box_edges``); across the level ray the centre is then the middle
+    of these (``BoxSides.span``) rather than of the points' own extent, and the object is as deep as the box is
+    wide (``BoxSides.span`` at the
+    points' median depth), its centre half that behind its nearest points (their 2nd percentile along the ray).
     For a box-shaped object this holds from every side: seen face-on the box is its face's width, and seen at a
     slant its nearest point is a corner, half the box's width in front of the centre. The points' own spread,
     which the completion uses without the box, is their density's: the nearer face of a chair seen at a slant
@@ -179,12 +181,15 @@ def complete_amodal(
             ray, level = flat / np.linalg.norm(flat), True
     smooth = points if reference is None else reference
     nearest, near, far = np.percentile(smooth @ ray, [2, 10, 90])
+    low, high = (0.0, 0.0) if up is None else (float(v) for v in np.percentile(smooth @ up, [2, 98]))
+    heights = (low, high)  # along up, from the camera
     if label in PANEL_DEPTH_M:
         mean, cov = panel(feature_from_points(smooth, label), ray, min(PANEL_DEPTH_M[label], room))
     else:
         if edges is not None and level:
             assert up is not None
-            width = edges_width(edges, float(np.median(smooth[:, 2])), np.cross(up, ray))
+            lo, hi = edges.span(np.cross(up, ray), ray, up, heights, float(np.median(smooth @ ray)))
+            width = max(hi - lo, 0.0)
             depth = min(width, float(far - near) + room)
             centre = float(nearest) + depth / 2.0
         else:
@@ -200,7 +205,7 @@ def complete_amodal(
         if edges is None:
             mean = centred_across(mean, smooth, side)
         else:  # the middle of the two ends
-            mean = mean + (float(np.mean(edges @ side)) - mean @ side) * side
+            mean = mean + (float(np.mean(edges.span(side, ray, up, heights))) - mean @ side) * side
         mean, cov = with_span(mean, cov, up, *vertical_extent(smooth @ up, mean - (mean @ up) * up, up, support))
     return FeatureVector(mean, cov, f.n, label, track_id, f.sources)
 
@@ -224,24 +229,50 @@ EDGE_SHARE = 0.1
 left (right) edge (``box_edges``)."""
 
 
-def box_edges(box: Box, K: Intrinsics, cols: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """Camera-frame points (2, 3) on a box's left and right edges' rays, at the depth of the view's points
-    (columns ``cols``, depths ``depth``) nearest each edge: the object's ends across the image, whatever of its
-    middle the depth segment caught or missed (a neighbour's pixels, an occluder, a part without depth). A view's
-    centre across its ray from these rather than from its points' 2nd and 98th percentiles: on development seeds
-    0-11, chair views 0.029 -> 0.020 m off across the ray in the median (the image's sides not cutting them),
-    potted plants' 0.025 -> 0.021 m, suitcases' 0.035 -> 0.018 m; on seeds 0-35 chairs' median error 0.054 ->
-    0.044 m."""
+@dataclass(frozen=True)
+class BoxSides:
+    """A box's left and right sides as seen from the camera: each a plane through the camera (``normals`` (2, 3),
+    camera frame) and a point on it (``points`` (2, 3): on the ray through the side's middle row, at the depth of
+    the view's points nearest that side)."""
+
+    points: np.ndarray
+    normals: np.ndarray
+
+    def span(
+        self,
+        side: np.ndarray,
+        ray: np.ndarray,
+        up: np.ndarray,
+        heights: tuple[float, float],
+        depth: float | None = None,
+    ) -> tuple[float, float]:
+        """The object's extent along the unit ``side`` (across the level ``ray``) between the two planes, at each
+        plane's point's depth along ``ray`` (or at ``depth``): where each plane cuts the object's bottom and top
+        ``heights`` (along ``up``), the inner of the two. A camera that looks down sees an object's upright
+        edges converge, and a tall object off the image's centre touches its box's side at its top or its
+        bottom only."""
+        ends = []
+        for point, n in zip(self.points, self.normals, strict=True):
+            d = float(point @ ray) if depth is None else depth
+            ends.append([-(d * (n @ ray) + h * (n @ up)) / (n @ side) for h in heights])
+        lo, hi = sorted(ends, key=lambda e: float(np.mean(e)))
+        return max(lo), min(hi)
+
+
+def box_edges(box: Box, K: Intrinsics, cols: np.ndarray, depth: np.ndarray) -> BoxSides:
+    """A box's sides (``BoxSides``), each at the depth of the view's points (columns ``cols``, depths ``depth``)
+    nearest it: the object's ends across the image, whatever of its middle the depth segment caught or missed (a
+    neighbour's pixels, an occluder, a part without depth). A view's centre across its ray from these rather than
+    from its points' 2nd and 98th percentiles: on development seeds 0-11, chair views 0.029 -> 0.020 m off across
+    the ray in the median (the image's sides not cutting them), potted plants' 0.025 -> 0.021 m, suitcases' 0.035
+    -> 0.018 m; on seeds 0-35 chairs' median error 0.054 -> 0.044 m. A box's edges are pixel edges, half a pixel
+    outside the centres of its outermost pixels."""
     reach = EDGE_SHARE * (box[2] - box[0])
     z = [float(np.median(depth[sel])) for sel in (cols <= cols.min() + reach, cols >= cols.max() - reach)]
-    return pixels_to_points(np.array(box[::2], float), np.full(2, 0.5 * (box[1] + box[3])), np.array(z), K)
-
-
-def edges_width(edges: np.ndarray, depth: float, side: np.ndarray) -> float:
-    """The extent along the unit ``side`` between the rays of two camera-frame ``edges`` (2, 3), both taken at
-    ``depth`` (the view's points' median: the depth of a single edge's few points is the noisier)."""
-    at = edges * (depth / edges[:, 2:3])
-    return abs(float((at[1] - at[0]) @ side))
+    u = np.array(box[::2], float) - 0.5
+    points = pixels_to_points(u, np.full(2, 0.5 * (box[1] + box[3]) - 0.5), np.array(z), K)
+    normals = np.column_stack([np.ones(2), np.zeros(2), -(u - K.cx) / K.fx])  # the planes x = z (u - cx) / fx
+    return BoxSides(points, normals / np.linalg.norm(normals, axis=1, keepdims=True))
 
 
 def panel(face: FeatureVector | None, ray: np.ndarray, depth: float) -> tuple[np.ndarray, np.ndarray]:

@@ -10,7 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
+from perception.amodal import detection_feature
 from perception.camera import Intrinsics
 from perception.features import FeatureConfig, depth_points, transform
 from perception.frame import CameraModel, Detection
@@ -204,3 +206,34 @@ def test_a_cup_seen_from_one_side_through_noisy_depth_is_not_pulled_towards_the_
     assert len(objects) == 1
     error = objects[0].mean - np.asarray(CUP.center)
     assert np.linalg.norm(error) < 0.02, error  # a near side taken from the noise lands it ~4 cm towards the camera
+
+
+BOTTLE = ObjectTruth(5, "bottle", (4.3, 4.68, 0.88), (0.065, 0.065, 0.26), 0.5)
+
+
+@pytest.mark.parametrize(("around_deg", "turn_deg"), [(200.0, -25.0), (200.0, 25.0), (260.0, -25.0), (260.0, 25.0)])
+def test_a_bottle_off_the_image_s_centre_is_as_deep_as_it_is_wide(around_deg: float, turn_deg: float) -> None:
+    """A bottle 1.9 m away seen 24 degrees off the image's centre by a camera 1.45 m up that looks down at it. Its
+    upright edges converge in the image, so its box is wider than the bottle at its depth (10-12 cm for 7-9):
+    taken as the bottle's width, it made the view 10-12 cm deep and put its centre 1.3-1.7 cm too far. Each of
+    the box's sides touches the bottle at its top or its bottom only (``amodal.edge_span``)."""
+    pose = looking_at(BOTTLE.center, np.radians([around_deg]), 1.9, 1.45)[0]
+    pose[:3, :3] = Rotation.from_euler("z", turn_deg, degrees=True).as_matrix() @ pose[:3, :3]
+    r = Renderer(surfaces([TABLE, BOTTLE]), K, W, H).render(pose)
+    depth = np.where(r.depth > 0, r.depth, np.nan).astype(np.float32)
+    up = pose[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    f = detection_feature(depth, K, mask_box(r.ids == BOTTLE.id), "bottle", 1, FeatureConfig(), up=up)
+    assert f is not None
+    centre = pose[:3, :3].T @ (np.asarray(BOTTLE.center) - pose[:3, 3])
+    assert abs(np.degrees(np.arctan2(centre[0], centre[2]))) > 20.0  # off the image's centre
+    ray = centre - (centre @ up) * up
+    ray /= np.linalg.norm(ray)
+    side = np.cross(up, ray)
+    # the bottle's true extent along the level ray: its footprint's corners (camera frame)
+    c, s = np.cos(BOTTLE.yaw), np.sin(BOTTLE.yaw)
+    half = np.array([[a * 0.0325, b * 0.0325] for a in (-1, 1) for b in (-1, 1)])
+    corners = np.column_stack([half @ [c, -s], half @ [s, c], np.zeros(4)]) + BOTTLE.center
+    deep = np.ptp(((corners - pose[:3, 3]) @ pose[:3, :3]) @ ray)
+    assert abs((f.mean - centre) @ ray) < 0.005
+    assert abs((f.mean - centre) @ side) < 0.003
+    assert abs(np.sqrt(12.0 * ray @ f.cov @ ray) - deep) < 0.01
