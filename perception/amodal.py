@@ -250,7 +250,11 @@ class BoxSides:
         plane's point's depth along ``ray`` (or at ``depth``): where each plane cuts the object's bottom and top
         ``heights`` (along ``up``), the inner of the two. A camera that looks down sees an object's upright
         edges converge, and a tall object off the image's centre touches its box's side at its top or its
-        bottom only."""
+        bottom only. Taken as the rays through the sides' middle rows, the box of a bottle 24 degrees off the
+        image's centre was 10-12 cm wide for 7-9 (``tests/test_object_geometry.py``); on the development seeds
+        0-35, bottles' median error 0.013 -> 0.004 m, vases' 0.014 -> 0.004 m, potted plants' 0.037 -> 0.022 m,
+        the scenes' 0.0316 -> 0.0277 m; chairs', whose face-on views the widening had put farther, 0.033 ->
+        0.036 m."""
         ends = []
         for point, n in zip(self.points, self.normals, strict=True):
             d = float(point @ ray) if depth is None else depth
