@@ -162,8 +162,8 @@ def complete_amodal(
 
     ``edges``: the sides of the object's box (``box_edges``); across the level ray the centre is then the middle
     of these (``BoxSides.span``) rather than of the points' own extent, and the object is as deep as the box is
-    wide (``BoxSides.span`` at the
-    points' median depth), its centre half that behind its nearest points (their 2nd percentile along the ray).
+    wide (``BoxSides.span`` at the points' median depth), its centre half that behind its nearest points (their
+    2nd percentile along the ray).
     For a box-shaped object this holds from every side: seen face-on the box is its face's width, and seen at a
     slant its nearest point is a corner, half the box's width in front of the centre. The points' own spread,
     which the completion uses without the box, is their density's: the nearer face of a chair seen at a slant

@@ -186,12 +186,7 @@ def on_floor(
     w = np.asarray(weights, float)
     bottom = float(u @ mean) - np.sqrt(3.0 * max(float(u @ cov @ u), 0.0)) - floor.height
     tops = view_ends(means, covs, u)[0]
-    seen = np.ones(len(w), bool) if top_cut is None else ~np.asarray(top_cut, bool)
-    if seen.sum() >= 3 or top_cut is None:
-        top = weighted_quantile(tops[seen], w[seen], 0.5)
-    else:
-        top = weighted_quantile(tops, w, 0.9)
-    top -= floor.height
+    top = (weighted_quantile(tops, w, 0.5) if top_cut is None else seen_end(tops, w, top_cut, 0.9)) - floor.height
     if not -config.agree_m <= bottom <= config.max_gap_m or top <= 0.0:
         return None
     return with_span(mean, cov, u, floor.height, floor.height + top)
@@ -229,17 +224,22 @@ def vertical_span(
     ``sqrt(3)`` standard deviations from its mean; the object's top is the weighted median of the tops of the
     views whose box the top edge does not cut (a cut view's top is the edge's, below the object's), else, with
     fewer than ``min_views`` of them, the 90th percentile of all tops; the bottom likewise. None when they cross."""
-    w = np.asarray(weights, float)
-    ends = []
-    enough = ends_seen(cut, min_views)
-    for k, (heights, fallback) in enumerate(zip(view_ends(means, covs, up), (0.9, 0.1), strict=True)):
-        seen = ~np.asarray(cut, bool)[:, k]
-        if enough[k]:
-            ends.append(weighted_quantile(heights[seen], w[seen], 0.5))
-        else:
-            ends.append(weighted_quantile(heights, w, fallback))
-    top, bottom = ends
+    w, cut = np.asarray(weights, float), np.asarray(cut, bool)
+    top, bottom = (
+        seen_end(heights, w, cut[:, k], fallback, min_views)
+        for k, (heights, fallback) in enumerate(zip(view_ends(means, covs, up), (0.9, 0.1), strict=True))
+    )
     return (bottom, top) if top > bottom else None
+
+
+def seen_end(heights: np.ndarray, weights: np.ndarray, cut: np.ndarray, fallback: float, min_views: int = 3) -> float:
+    """One end (top or bottom) of an object from its views' ends ``heights`` (N,), ``weights`` (N,) and (N,) flags
+    that the image's edge cut the view there: the weighted median of the ends of the views it did not cut, else,
+    with fewer than ``min_views`` of them, the ``fallback`` quantile of all."""
+    seen = ~np.asarray(cut, bool)
+    if seen.sum() >= min_views:
+        return weighted_quantile(heights[seen], weights[seen], 0.5)
+    return weighted_quantile(heights, weights, fallback)
 
 
 def ends_seen(cut: np.ndarray, min_views: int = 3) -> tuple[bool, bool]:

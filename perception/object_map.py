@@ -210,15 +210,17 @@ class ObjectMapper:
         means, covs = np.stack([f.mean for f in members]), np.stack([f.cov for f in members])
         mean, cov = robust_gaussian(means, covs, n)
         floor = self.floor
-        if floor is not None and members[0].label in LARGE_CLASSES:
+        if floor is None:
+            return mean, cov
+        if members[0].label in LARGE_CLASSES:
             mean, cov = union_footprint(mean, cov, (means, covs, n), floor.up)
         cut = None
         if all(f.sources for f in members):  # whether the image's top / bottom edge cut each view's box
             cut = np.array([[all(self._obs_cut[x][k] for x in f.sources) for k in (0, 1)] for f in members])
-        if floor is not None and members[0].label in FLOOR_CLASSES:
+        if members[0].label in FLOOR_CLASSES:
             top_cut = None if cut is None else cut[:, 0]
             return on_floor(mean, cov, (means, covs, n), floor, self.floor_config, top_cut) or (mean, cov)
-        if floor is not None and cut is not None:
+        if cut is not None:
             span = vertical_span(means, covs, n, floor.up, cut)
             if span is not None and members[0].label in SCREEN_ASPECT:
                 wide = horizontal_axes(cov, floor.up)[0]
