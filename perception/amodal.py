@@ -168,7 +168,8 @@ def complete_amodal(
     slant its nearest point is a corner, half the box's width in front of the centre. The points' own spread,
     which the completion uses without the box, is their density's: the nearer face of a chair seen at a slant
     holds more of them (development seeds 0-35: chairs 0.044 -> 0.033 m, the scenes' median error 0.036 -> 0.030
-    m; cups and bottles, 0.003-0.004 m before, 0.006-0.013 m).
+    m; cups and bottles, 0.003-0.004 m before, 0.006-0.013 m, until the box's sides were taken as planes:
+    ``BoxSides.span``).
     """
     f = feature_from_points(points, label, track_id)
     if f is None:
