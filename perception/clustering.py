@@ -202,6 +202,10 @@ Locate = Callable[[Sequence[FeatureVector]], "tuple[np.ndarray, np.ndarray] | No
 """An object's centre and covariance from its cluster's members (``ObjectMapper``: ``robust_gaussian``, stretched
 to the floor), or None to keep the pooled Gaussian's."""
 
+Exists = Callable[[Sequence[FeatureVector], np.ndarray], bool]
+"""Whether the object of a cluster's members, centred at the given point, is kept (``ObjectMapper``: detected often
+enough where it stood in view, ``perception.existence``)."""
+
 
 def ellipsoid(
     members: Sequence[FeatureVector], object_id: int, axis_scale: float, locate: Locate | None = None
@@ -248,6 +252,8 @@ class Clusterer:
         """The keyframe of each observation id of ``FeatureVector.sources`` (``ObjectMapper``'s store)."""
         self.locate: Locate | None = None
         """Where a cluster's object lies (``ellipsoid``); None: its pooled Gaussian."""
+        self.exists: Exists | None = None
+        """Which clusters' objects are kept; None: all."""
         self._fit = self._out = self._new = 0
         self._next_id = 1
         self.retired: list[int] = []
@@ -325,6 +331,8 @@ class Clusterer:
                 joined = [clusters[g[0]] if len(g) == 1 else [f for i in g for f in clusters[i]] for g in groups]
                 clusters = sorted(self._cut(joined), key=len, reverse=True)  # a joined group, a part left whole
                 objects = self._carry_ids(clusters, made)
+        if self.exists is not None:
+            objects = [o for c, o in zip(clusters, objects, strict=True) if self.exists(c, o.mean)]
         self.objects = objects
         self.reclusterings += 1
         self._fit = self._out = self._new = 0

@@ -12,6 +12,7 @@ from perception.amodal import cut_by_border, cut_vertically, detection_feature
 from perception.anchoring import anchored_segments
 from perception.camera import Intrinsics
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
+from perception.existence import Looks
 from perception.features import (
     FeatureConfig,
     FeatureVector,
@@ -113,6 +114,9 @@ class ObjectMapper:
         self._floor_stale = False
         self._floor_saved: dict[str, np.ndarray] | None = None  # ``_floor_columns`` of the views, until they change
         self.clusterer.locate = self._locate
+        self.looks = Looks()
+        """The keyframes the detector ran on: an object seen in too few of those that had it in view is not kept."""
+        self.clusterer.exists = self._exists
         self._obs_local: list[FeatureVector] = []
         self._obs_cut: list[tuple[bool, bool]] = []
         """Per observation: whether the image's top and bottom edges cut its box (``floor.vertical_span``)."""
@@ -121,9 +125,18 @@ class ObjectMapper:
         with enough depth whose box the image border does not cut (a cut box measures part of the object)."""
 
     def add_keyframe(
-        self, index: int, detections: list[Detection], depth_m: np.ndarray, K: Intrinsics, pose: np.ndarray
+        self,
+        index: int,
+        detections: list[Detection],
+        depth_m: np.ndarray,
+        K: Intrinsics,
+        pose: np.ndarray,
+        looked: bool = True,
     ) -> bool:
-        """Associate, extend tracks, store feature vectors, re-cluster when due; True if it re-clustered."""
+        """Associate, extend tracks, store feature vectors, re-cluster when due; True if it re-clustered.
+        ``looked``: whether the detector ran on this keyframe (a keyframe it skipped misses no object)."""
+        if looked:
+            self.looks.add(index, pose, K, (depth_m.shape[1], depth_m.shape[0]))
         pairs = []
         if self._prev is not None and detections and self._prev.detections:
             pairs = associate(
@@ -230,6 +243,11 @@ class ObjectMapper:
                 mean, cov = with_span(mean, cov, floor.up, *span)
         return mean, cov
 
+    def _exists(self, members: Sequence[FeatureVector], centre: np.ndarray) -> bool:
+        """Whether the object of ``members`` at ``centre`` is kept: seen often enough where it stood in view."""
+        keyframe_of = self._obs_keyframe
+        return self.looks.kept(centre, {keyframe_of[s] for f in members for s in f.sources if s < len(keyframe_of)})
+
     def observation(self, source: int) -> tuple[int, FeatureVector]:
         """A stored observation (a ``FeatureVector.sources`` id): its keyframe and camera-frame feature vector."""
         return self._obs_keyframe[source], self._obs_local[source]
@@ -271,6 +289,7 @@ class ObjectMapper:
         for k, (plane, pose) in list(self._floor_views.items()):
             self._floor_views[k] = (plane, np.array(poses[k], float) if _has(poses, k) else pose)
         self._floor_stale, self._floor_saved = True, None
+        self.looks.moved({k: np.asarray(poses[k]) for k in self.looks.poses if _has(poses, k)})
         return self.clusterer.recluster(self.tracker.tracks.keys())
 
     def take_retired(self) -> list[int]:
@@ -299,6 +318,7 @@ class ObjectMapper:
             "prev": prev,
             "associations": self.associations,
             "floor_views": self._floor_saved or self._saved_floor(),
+            "looks": self.looks.state(),
         }
         logs = {
             "observations.keyframe": self._obs_keyframe,
@@ -324,6 +344,7 @@ class ObjectMapper:
         self.clusterer.keyframe_of = self._obs_keyframe
         self._floor_views = _floor_rows(state.get("floor_views", {}))  # none in snapshots of earlier versions
         self._floor_stale, self._floor_saved = True, None
+        self.looks.restore(state.get("looks", {}))  # none in snapshots of earlier versions: judged from now on
 
     def finish(self) -> list[ObjectEllipsoid]:
         """End of sequence: emit every open track window and re-cluster once more."""

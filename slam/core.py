@@ -241,7 +241,7 @@ class SlamCore(MapViews):
         detections: Handle
         behind = self.live and sum(not idle([jobs]) for jobs in self.pending) >= LIVE_BEHIND
         if frame.detections is None and self.settings.detector.enabled and behind:
-            detections, self.detections_skipped = Done(([], {})), self.detections_skipped + 1
+            detections, self.detections_skipped = Done((None, {})), self.detections_skipped + 1  # none: not looked
         elif frame.detections is None and self.settings.detector.enabled:
             detections = self.runner.submit(Lane.DETECT, stages.detect, self._get_detector(), frame.rgb)
         else:

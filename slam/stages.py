@@ -49,6 +49,8 @@ def map_objects(
     depth is registered to colour and the colour camera's pose is used.
     """
     found, timings = detections.result()
+    looked = found is not None  # None: the detector skipped this keyframe (mapping was behind)
+    found = found or []
     result = KeyframeObjects(kf, found, timings=dict(timings))
     if mapper is None:
         return result
@@ -60,7 +62,7 @@ def map_objects(
     t0 = time.perf_counter()
     camera = frame.camera
     depth = depth_in_color(frame.depth_m(), camera, scale=2)
-    result.reclustered = mapper.add_keyframe(kf, found, depth, camera.color, body @ color_from_body)
+    result.reclustered = mapper.add_keyframe(kf, found, depth, camera.color, body @ color_from_body, looked)
     to_body = np.linalg.inv(color_from_body)
     result.observations = [
         (t, to_body[:3, :3] @ p + to_body[:3, 3], extent) for t, p, extent in mapper.last_observations
