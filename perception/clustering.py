@@ -202,9 +202,9 @@ Locate = Callable[[Sequence[FeatureVector]], "tuple[np.ndarray, np.ndarray] | No
 """An object's centre and covariance from its cluster's members (``ObjectMapper``: ``robust_gaussian``, stretched
 to the floor), or None to keep the pooled Gaussian's."""
 
-Exists = Callable[[Sequence[FeatureVector], np.ndarray], bool]
-"""Whether the object of a cluster's members, centred at the given point, is kept (``ObjectMapper``: detected often
-enough where it stood in view, ``perception.existence``)."""
+Judge = Callable[[Sequence[Sequence[FeatureVector]], Sequence["ObjectEllipsoid"]], list[bool]]
+"""Which of the objects of clusters are kept (given the clusters' members and their objects; ``ObjectMapper``:
+those detected often enough where they stood in view, ``perception.existence``)."""
 
 
 def ellipsoid(
@@ -252,25 +252,36 @@ class Clusterer:
         """The keyframe of each observation id of ``FeatureVector.sources`` (``ObjectMapper``'s store)."""
         self.locate: Locate | None = None
         """Where a cluster's object lies (``ellipsoid``); None: its pooled Gaussian."""
-        self.exists: Exists | None = None
-        """Which clusters' objects are kept; None: all."""
+        self.judge: Judge | None = None
+        """Which objects are kept (``kept``); None: all. The others stay objects here, so that clustering runs as
+        it would without them, but are not shown."""
+        self.unkept: set[int] = set()
+        """The ids of the objects ``judge`` did not keep."""
         self._fit = self._out = self._new = 0
         self._next_id = 1
         self.retired: list[int] = []
         """Tracks retired by the re-clusterings since the owner last took them (``ObjectMapper.take_retired``)."""
 
     def state(self) -> dict:
-        """Plain state: stored feature vectors, objects, eq. 2.15 counters and the next object id."""
+        """Plain state: stored feature vectors, objects (and those not kept), eq. 2.15 counters and the next
+        object id."""
         return {
             "features": self.features,
             "objects": self.objects,
+            "unkept": sorted(self.unkept),
             "reclusterings": self.reclusterings,
             "counts": (self._fit, self._out, self._new),
             "next_id": self._next_id,
         }
 
+    @property
+    def kept(self) -> list[ObjectEllipsoid]:
+        """The objects ``judge`` kept."""
+        return [o for o in self.objects if o.id not in self.unkept]
+
     def restore(self, state: dict) -> None:
         self.features, self.objects, self.reclusterings = state["features"], state["objects"], state["reclusterings"]
+        self.unkept = set(state.get("unkept", ()))  # none in snapshots of earlier versions
         (self._fit, self._out, self._new), self._next_id = state["counts"], state["next_id"]
 
     def add(self, features: Sequence[FeatureVector | None]) -> None:
@@ -331,8 +342,8 @@ class Clusterer:
                 joined = [clusters[g[0]] if len(g) == 1 else [f for i in g for f in clusters[i]] for g in groups]
                 clusters = sorted(self._cut(joined), key=len, reverse=True)  # a joined group, a part left whole
                 objects = self._carry_ids(clusters, made)
-        if self.exists is not None:
-            objects = [o for c, o in zip(clusters, objects, strict=True) if self.exists(c, o.mean)]
+        if self.judge is not None:
+            self.unkept = {o.id for o, ok in zip(objects, self.judge(clusters, objects), strict=True) if not ok}
         self.objects = objects
         self.reclusterings += 1
         self._fit = self._out = self._new = 0

@@ -18,13 +18,13 @@ kind per object. Pure computation, no I/O.
 
 from __future__ import annotations
 
-from collections.abc import Collection
+from collections.abc import Collection, Sequence
 
 import numpy as np
 
 from perception.camera import Intrinsics
 
-MIN_RATE = 0.2
+MIN_RATE = 0.25
 """An object detected in fewer than this share of the keyframes that looked at it is not kept."""
 
 MIN_LOOKS = 20
@@ -34,49 +34,57 @@ MARGIN = 0.05
 """A keyframe looked at an object when its centre projects this share of the image's size inside the border."""
 
 
-def looked(centre: np.ndarray, poses: np.ndarray, K: Intrinsics, size: tuple[int, int], farthest: float) -> np.ndarray:
-    """Which of the camera-to-world ``poses`` (N, 4, 4) had world point ``centre`` in their image (``size``: width,
-    height; ``MARGIN`` inside), in front of the camera and at most ``farthest`` metres deep."""
-    if len(poses) == 0:
-        return np.zeros(0, bool)
-    local = np.einsum("nji,nj->ni", poses[:, :3, :3], np.asarray(centre, float)[None] - poses[:, :3, 3])
-    z = local[:, 2]
-    front = z > 1e-6
-    safe = np.where(front, z, 1.0)
-    u, v = K.fx * local[:, 0] / safe + K.cx, K.fy * local[:, 1] / safe + K.cy
-    w, h = size
-    return (
-        front
-        & (z <= farthest)
-        & (u >= MARGIN * w)
-        & (u <= (1.0 - MARGIN) * w)
-        & (v >= MARGIN * h)
-        & (v <= (1.0 - MARGIN) * h)
-    )
+def half_extent(cov: np.ndarray) -> float:
+    """An object's half size along its longest axis, taken as uniform: sqrt(3) standard deviations."""
+    return float(np.sqrt(3.0 * max(float(np.linalg.eigvalsh(cov)[-1]), 0.0)))
 
 
-def detection_rate(
-    centre: np.ndarray,
-    seen: Collection[int],
-    keyframes: np.ndarray,
-    poses: np.ndarray,
-    K: Intrinsics,
-    size: tuple[int, int],
-) -> tuple[int, int]:
-    """(keyframes that detected the object, keyframes that looked at it, those included), over ``keyframes``
-    (ids, with camera-to-world ``poses``, all with the detector run). ``seen``: the keyframes that detected it."""
-    detected = np.isin(keyframes, np.fromiter(seen, np.int64, len(seen)))
-    if not detected.any():
-        return 0, 0
-    local_z = np.einsum("ni,ni->n", poses[detected, :3, 2], np.asarray(centre, float)[None] - poses[detected, :3, 3])
-    farthest = float(local_z.max())
-    look = looked(centre, poses, K, size, farthest) | detected
-    return int(detected.sum()), int(look.sum())
+def project(centres: np.ndarray, poses: np.ndarray, K: Intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Depth and pixel column and row (each (N, M)) of world points ``centres`` (M, 3) in the cameras of the
+    camera-to-world ``poses`` (N, 4, 4); a point behind a camera has depth <= 0 (and meaningless pixels)."""
+    rel = np.asarray(centres, float)[None, :, :] - poses[:, None, :3, 3]
+    local = np.einsum("nji,nmj->nmi", poses[:, :3, :3], rel)
+    z = local[..., 2]
+    safe = np.where(z > 1e-6, z, 1.0)
+    return z, K.fx * local[..., 0] / safe + K.cx, K.fy * local[..., 1] / safe + K.cy
 
 
 def exists(detected: int, looks: int) -> bool:
     """Whether an object detected in ``detected`` of the ``looks`` keyframes that looked at it is kept."""
     return looks < MIN_LOOKS or detected >= MIN_RATE * looks
+
+
+def judged(
+    centres: np.ndarray,
+    halves: np.ndarray,
+    seen: Sequence[Collection[int]],
+    keyframes: np.ndarray,
+    poses: np.ndarray,
+    camera: tuple[Intrinsics, tuple[int, int]],
+) -> list[bool]:
+    """Which of the objects at ``centres`` (M, 3), of half sizes ``halves`` (``half_extent``) and detected in the
+    keyframes ``seen[i]``, are kept: detected often enough (``exists``) in the ``keyframes`` (ids, with
+    camera-to-world ``poses``, all with the detector run) that looked at them (the module's docstring). A keyframe
+    in which another of the objects stands in front of one, over its centre's pixel, did not look at it."""
+    K, (w, h) = camera
+    z, u, v = project(centres, poses, K)
+    inside = (u >= MARGIN * w) & (u <= (1.0 - MARGIN) * w) & (v >= MARGIN * h) & (v <= (1.0 - MARGIN) * h)
+    out = []
+    for i, frames in enumerate(seen):
+        detected = np.isin(keyframes, np.fromiter(frames, np.int64, len(frames)))
+        if not detected.any():
+            out.append(True)
+            continue
+        view = inside[:, i] & (z[:, i] > 1e-6) & (z[:, i] <= z[detected, i].max())
+        if exists(int(detected.sum()), int((view | detected).sum())):
+            out.append(True)
+            continue
+        nearer = (z > 1e-6) & (z < (z[:, i] - halves[i])[:, None])
+        covers = np.hypot(u - u[:, i : i + 1], v - v[:, i : i + 1]) < K.fx * halves[None, :] / np.where(nearer, z, 1.0)
+        covers[:, i] = False
+        hidden = (nearer & covers).any(axis=1)
+        out.append(exists(int(detected.sum()), int(((view & ~hidden) | detected).sum())))
+    return out
 
 
 MAX_KEPT = 1000
@@ -114,12 +122,11 @@ class Looks:
             )
         return self._columns
 
-    def kept(self, centre: np.ndarray, seen: Collection[int]) -> bool:
-        """Whether an object centred at ``centre`` that the keyframes ``seen`` detected is kept (``exists``)."""
-        if self.camera is None or not self.poses:
-            return True
-        keyframes, poses = self.columns()
-        return exists(*detection_rate(centre, seen, keyframes, poses, *self.camera))
+    def judged(self, centres: np.ndarray, halves: np.ndarray, seen: Sequence[Collection[int]]) -> list[bool]:
+        """``judged`` over the keyframes kept (all objects are kept until a keyframe looked)."""
+        if self.camera is None or not self.poses or len(seen) == 0:
+            return [True] * len(seen)
+        return judged(centres, halves, seen, *self.columns(), self.camera)
 
     def state(self) -> dict[str, np.ndarray]:
         """Plain state: the keyframes, their poses and the camera (fx, fy, cx, cy, width, height; empty: none)."""

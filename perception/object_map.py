@@ -12,7 +12,7 @@ from perception.amodal import cut_by_border, cut_vertically, detection_feature
 from perception.anchoring import anchored_segments
 from perception.camera import Intrinsics
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
-from perception.existence import Looks
+from perception.existence import Looks, half_extent
 from perception.features import (
     FeatureConfig,
     FeatureVector,
@@ -116,7 +116,7 @@ class ObjectMapper:
         self.clusterer.locate = self._locate
         self.looks = Looks()
         """The keyframes the detector ran on: an object seen in too few of those that had it in view is not kept."""
-        self.clusterer.exists = self._exists
+        self.clusterer.judge = self._judge
         self._obs_local: list[FeatureVector] = []
         self._obs_cut: list[tuple[bool, bool]] = []
         """Per observation: whether the image's top and bottom edges cut its box (``floor.vertical_span``)."""
@@ -243,10 +243,12 @@ class ObjectMapper:
                 mean, cov = with_span(mean, cov, floor.up, *span)
         return mean, cov
 
-    def _exists(self, members: Sequence[FeatureVector], centre: np.ndarray) -> bool:
-        """Whether the object of ``members`` at ``centre`` is kept: seen often enough where it stood in view."""
-        keyframe_of = self._obs_keyframe
-        return self.looks.kept(centre, {keyframe_of[s] for f in members for s in f.sources if s < len(keyframe_of)})
+    def _judge(self, clusters: Sequence[Sequence[FeatureVector]], objects: Sequence[ObjectEllipsoid]) -> list[bool]:
+        """Which of the objects of ``clusters`` are kept: those seen often enough where they stood in view."""
+        of = self._obs_keyframe
+        seen = [{of[s] for f in members for s in f.sources if s < len(of)} for members in clusters]
+        centres = np.array([o.mean for o in objects], float).reshape(-1, 3)
+        return self.looks.judged(centres, np.array([half_extent(o.cov) for o in objects]), seen)
 
     def observation(self, source: int) -> tuple[int, FeatureVector]:
         """A stored observation (a ``FeatureVector.sources`` id): its keyframe and camera-frame feature vector."""
@@ -274,7 +276,7 @@ class ObjectMapper:
         equals mapping the sequence again with the new poses (tracks and associations stay as they were).
         """
         if not self._obs_local:
-            return self.clusterer.objects
+            return self.clusterer.kept
         T = np.stack([poses[k] for k in self._obs_keyframe])
         R, t = T[:, :3, :3], T[:, :3, 3]
         means = np.einsum("nij,nj->ni", R, np.stack([f.mean for f in self._obs_local])) + t
@@ -290,7 +292,8 @@ class ObjectMapper:
             self._floor_views[k] = (plane, np.array(poses[k], float) if _has(poses, k) else pose)
         self._floor_stale, self._floor_saved = True, None
         self.looks.moved({k: np.asarray(poses[k]) for k in self.looks.poses if _has(poses, k)})
-        return self.clusterer.recluster(self.tracker.tracks.keys())
+        self.clusterer.recluster(self.tracker.tracks.keys())
+        return self.clusterer.kept
 
     def take_retired(self) -> list[int]:
         """The tracks the re-clusterings retired since the last call (``perception.track_retirement``)."""
@@ -349,11 +352,13 @@ class ObjectMapper:
     def finish(self) -> list[ObjectEllipsoid]:
         """End of sequence: emit every open track window and re-cluster once more."""
         self.clusterer.add(self.tracker.flush())
-        return self.clusterer.recluster(self.tracker.tracks.keys())
+        self.clusterer.recluster(self.tracker.tracks.keys())
+        return self.clusterer.kept
 
     @property
     def objects(self) -> list[ObjectEllipsoid]:
-        return self.clusterer.objects
+        """The objects kept (``Clusterer.kept``)."""
+        return self.clusterer.kept
 
 
 def object_json(o: ObjectEllipsoid, landmark: np.ndarray | None = None) -> dict:
