@@ -53,6 +53,7 @@ def summarize(core: SlamCore, old: MapSummary) -> MapSummary:
         "keyframe_detections_by_class": dict(core.detections_by_class),
         "objects": len(objects),
         "objects_by_class": dict(Counter(o["label"] for o in objects)),
+        "objects_unconfirmed": core.objects_unconfirmed,  # detected too seldom where they stood in view: not shown
     }
     return MapSummary(counts, objects, core.object_map_version, loops, key, objects_key)
 

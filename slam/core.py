@@ -110,6 +110,7 @@ class SlamCore(MapViews):
         self.kf_points: ColdLog[np.ndarray] = ColdLog()  # sparse depth samples per keyframe, camera frame, float32
         self.pending: deque[dict[str, Handle]] = deque()  # per keyframe, oldest first: its unapplied stages
         self.objects_view: list = []  # the objects as of the last applied mapping (read by object_list)
+        self.objects_unconfirmed = 0  # and how many objects it did not show (``perception.existence``)
         self.object_poses = PlacedPoses()  # per keyframe: the pose its object observations were placed with
         self.keyframe_detections: dict[int, list[Detection]] = {}
         self.detections_by_class: Counter[str] = Counter()
@@ -349,7 +350,7 @@ class SlamCore(MapViews):
                 self.landmarks.sync(result.objects, result.retired)
             self.timings["landmarks"] = time.perf_counter() - t0
         self.object_map_version += int(result.reclustered) + int(result.reposed)
-        self.objects_view = result.objects
+        self.objects_view, self.objects_unconfirmed = result.objects, result.unconfirmed
 
     def settle(self) -> list[dict[str, KeyframeObjects | KeyframeLoops | None]]:
         """Wait for the submitted stages and keep their results (unapplied); a failed stage as None."""
@@ -373,6 +374,7 @@ class SlamCore(MapViews):
         if self.objects is not None and self.records:
             self.objects.finish()
             self.objects_view = list(self.objects.objects)
+            self.objects_unconfirmed = len(self.objects.clusterer.unkept)
             if self.landmarks is not None:
                 self.landmarks.sync(self.objects_view, self.objects.take_retired())
             self.object_map_version += 1

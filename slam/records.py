@@ -36,6 +36,7 @@ class KeyframeObjects:
     reposed: bool = False
     objects: list[ObjectEllipsoid] = field(default_factory=list)  # the object map after this keyframe
     retired: tuple[int, ...] = ()  # tracks retired into their objects' anchors (their measurements settled)
+    unconfirmed: int = 0  # objects not shown: detected too seldom where they stood in view (perception.existence)
     timings: dict[str, float] = field(default_factory=dict)
 
 

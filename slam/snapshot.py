@@ -92,6 +92,7 @@ def restore_core(settings: SlamConfig, state: dict[str, Any], runner: Runner | N
     core.mapping_errors = state.get("mapping_errors", 0)
     if core.objects is not None:
         core.objects_view = list(state.get("objects_view", core.objects.objects))
+        core.objects_unconfirmed = len(core.objects.clusterer.unkept)
     for results in state.get("pending_mapping", []):
         jobs: dict[str, Handle] = {"objects": Done(results["objects"])} if "objects" in results else {}
         if "loops" in results:

@@ -69,6 +69,7 @@ def map_objects(
     ]
     result.objects = list(mapper.objects)  # the mapper may be on a later keyframe when this is applied
     result.retired = tuple(mapper.take_retired())
+    result.unconfirmed = len(mapper.clusterer.unkept)
     result.timings["objects"] = time.perf_counter() - t0
     return result
 

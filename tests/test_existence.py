@@ -121,3 +121,11 @@ def test_a_plant_made_of_a_plant_s_misplaced_views_is_not_mapped(use_existence: 
     false_plants = [o for a, o in enumerate(objects) if a not in matched and o.label == "potted plant"]
     assert len(false_plants) == (0 if use_existence else 1)
     assert len(matched) >= 20
+    # the clusterer still holds the object it did not show, and counts it (status: objects_unconfirmed)
+    hidden = [o for o in mapper.clusterer.objects if o.id in mapper.clusterer.unkept]
+    assert len(hidden) >= (1 if use_existence else 0) and not {o.id for o in hidden} & {o.id for o in objects}
+    if use_existence:
+        assert any(o.label == "potted plant" and np.linalg.norm(o.mean[:2] - [0.58, 5.55]) < 0.1 for o in hidden)
+    restored = ObjectMapper()
+    restored.restore(mapper.state())
+    assert [o.id for o in restored.objects] == [o.id for o in objects]

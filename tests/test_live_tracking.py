@@ -186,6 +186,8 @@ def test_a_live_core_never_waits_for_a_detector_that_is_behind_and_skips_its_key
         assert most_pending <= LIVE_MAX_PENDING and 0 < core.detections_skipped < keyframes
         assert core.detector_loaded  # the keyframes not skipped went to the ONNX detector
         assert len(core.keyframe_detections) == keyframes  # every keyframe mapped (some without detections)
+        # a keyframe the detector skipped did not look at any object (it would count as a miss of every one)
+        assert core.objects is not None and len(core.objects.looks.poses) == keyframes - core.detections_skipped
         assert len(core.trajectory()) == len(frames) and core.tracking_lost == 0
     finally:
         core.close()
