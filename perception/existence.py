@@ -81,16 +81,21 @@ def judged(
         if exists(int(detected.sum()), int((view | detected).sum())):
             out.append(True)
             continue
-        nearer = (z > 1e-6) & (z < (z[:, i] - halves[i])[:, None])
-        covers = np.hypot(u - u[:, i : i + 1], v - v[:, i : i + 1]) < K.fx * halves[None, :] / np.where(nearer, z, 1.0)
+        missed = np.flatnonzero(view & ~detected)  # the keyframes an object in front may have hidden it from
+        zm, um, vm = z[missed], u[missed], v[missed]
+        nearer = (zm > 1e-6) & (zm < (zm[:, i] - halves[i])[:, None])
+        reach = K.fx * halves[None, :] / np.where(nearer, zm, 1.0)
+        covers = np.hypot(um - um[:, i : i + 1], vm - vm[:, i : i + 1]) < reach
         covers[:, i] = False
-        hidden = (nearer & covers).any(axis=1)
-        out.append(exists(int(detected.sum()), int(((view & ~hidden) | detected).sum())))
+        hidden = int((nearer & covers).any(axis=1).sum())
+        out.append(exists(int(detected.sum()), int((view | detected).sum()) - hidden))
     return out
 
 
-MAX_KEPT = 1000
-"""Keyframes whose poses ``Looks`` keeps (the newest): an object is judged on the keyframes of the last while."""
+MAX_KEPT = 500
+"""Keyframes whose poses ``Looks`` keeps (the newest): an object is judged on the keyframes of the last while
+(an object none of them detected is kept as it is). As many as the floor's views: the two go into every
+checkpoint's small part, 28 kB here."""
 
 
 class Looks:
@@ -131,15 +136,16 @@ class Looks:
         return judged(centres, halves, seen, *self.columns(), self.camera)
 
     def state(self) -> dict[str, np.ndarray]:
-        """Plain state: the keyframes, their poses and the camera (fx, fy, cx, cy, width, height; empty: none)."""
+        """Plain state: the keyframes, their poses' top three rows in single precision (a visibility test needs
+        no more) and the camera (fx, fy, cx, cy, width, height; empty: none)."""
         keyframes, poses = self.columns()
         camera = [] if self.camera is None else [*self.camera[0].matrix()[[0, 1, 0, 1], [0, 1, 2, 2]], *self.camera[1]]
-        return {"keyframes": keyframes, "poses": poses, "camera": np.array(camera, float)}
+        return {"keyframes": keyframes, "poses": poses[:, :3].astype(np.float32), "camera": np.array(camera, float)}
 
     def restore(self, state: dict) -> None:
         """The state ``state()`` gave (an empty one: nothing kept)."""
         rows = zip(state.get("keyframes", []), state.get("poses", []), strict=True)
-        self.poses = {int(k): np.array(T, float) for k, T in rows}
+        self.poses = {int(k): np.vstack([np.asarray(T, float)[:3], [0.0, 0.0, 0.0, 1.0]]) for k, T in rows}
         camera = np.asarray(state.get("camera", []), float)
         fx, fy, cx, cy, w, h = camera if len(camera) == 6 else (0.0,) * 6
         self.camera = (Intrinsics(float(fx), float(fy), float(cx), float(cy)), (int(w), int(h))) if w > 0 else None

@@ -84,7 +84,8 @@ def test_looks_keep_the_newest_keyframes_move_with_the_poses_and_survive_a_resta
     again = Looks()
     again.restore(looks.state())
     assert list(again.poses) == list(looks.poses) and again.camera == looks.camera
-    assert all(np.array_equal(again.poses[k], looks.poses[k]) for k in looks.poses)
+    assert all(np.allclose(again.poses[k], looks.poses[k], atol=1e-6) for k in looks.poses)  # single precision
+    assert again.judged(centre, half, [{0, 1, 2}]) == [True]
     old = Looks()
     old.restore({})  # a state from before looks were kept
     assert old.camera is None and not old.poses
