@@ -110,7 +110,6 @@ class SlamCore(MapViews):
         self.kf_points: ColdLog[np.ndarray] = ColdLog()  # sparse depth samples per keyframe, camera frame, float32
         self.pending: deque[dict[str, Handle]] = deque()  # per keyframe, oldest first: its unapplied stages
         self.objects_view: list = []  # the objects as of the last applied mapping (read by object_list)
-        self.objects_unconfirmed = 0  # and how many objects it did not show (``perception.existence``)
         self.object_poses = PlacedPoses()  # per keyframe: the pose its object observations were placed with
         self.keyframe_detections: dict[int, list[Detection]] = {}
         self.detections_by_class: Counter[str] = Counter()
@@ -373,8 +372,7 @@ class SlamCore(MapViews):
         self.graph.flush()
         if self.objects is not None and self.records:
             self.objects.finish()
-            self.objects_view = list(self.objects.objects)
-            self.objects_unconfirmed = len(self.objects.clusterer.unkept)
+            self.objects_view, self.objects_unconfirmed = list(self.objects.objects), len(self.objects.clusterer.unkept)
             if self.landmarks is not None:
                 self.landmarks.sync(self.objects_view, self.objects.take_retired())
             self.object_map_version += 1

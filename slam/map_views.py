@@ -52,6 +52,7 @@ class MapViews:
     kf_points: ColdLog[np.ndarray]
     objects: ObjectMapper | None
     objects_view: list
+    objects_unconfirmed: int = 0  # objects the last applied mapping did not show (``perception.existence``)
     landmarks: ObjectLandmarks | None
     segments: Segments
     methods: Counter[str]
