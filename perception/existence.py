@@ -51,6 +51,26 @@ def project(centres: np.ndarray, poses: np.ndarray, K: Intrinsics) -> tuple[np.n
     return z, K.fx * local[..., 0] / safe + K.cx, K.fy * local[..., 1] / safe + K.cy
 
 
+def hidden(cameras: np.ndarray, target: int, centres: np.ndarray, covs: np.ndarray) -> np.ndarray:
+    """Per camera centre (K, 3): whether the sight line to object ``target``'s centre passes through another
+    object before reaching ``target``'s own extent. An object's extent is the ellipsoid of sqrt(3) standard
+    deviations of its covariance (``covs``, (M, 3, 3): the half size of a uniform extent)."""
+    inv = np.linalg.inv(3.0 * np.asarray(covs, float) + 1e-6 * np.eye(3))
+    sight = centres[target][None] - cameras
+    reach = np.linalg.norm(sight, axis=1)
+    d = sight / np.maximum(reach, 1e-9)[:, None]
+    front = np.maximum(reach - half_extent(covs[target]), 0.0)  # the line up to the target's own extent
+    rel = cameras[:, None, :] - centres[None, :, :]  # (K, M, 3)
+    Ad = np.einsum("mij,kj->kmi", inv, d)
+    a = np.maximum(np.einsum("kmi,ki->km", Ad, d), 1e-12)
+    b = 2.0 * np.einsum("kmi,kmi->km", Ad, rel)
+    c = np.einsum("kmi,mij,kmj->km", rel, inv, rel) - 1.0
+    t = np.clip(-b / (2.0 * a), 0.0, front[:, None])  # the line's point nearest each centre, in the ellipsoid metric
+    inside = a * t * t + b * t + c <= 0.0
+    inside[:, target] = False
+    return inside.any(axis=1)
+
+
 def exists(detected: int, looks: int) -> bool:
     """Whether an object detected in ``detected`` of the ``looks`` keyframes that looked at it is kept."""
     return looks < MIN_LOOKS or detected >= MIN_RATE * looks
@@ -58,16 +78,16 @@ def exists(detected: int, looks: int) -> bool:
 
 def judged(
     centres: np.ndarray,
-    halves: np.ndarray,
+    covs: np.ndarray,
     seen: Sequence[Collection[int]],
     keyframes: np.ndarray,
     poses: np.ndarray,
     camera: tuple[Intrinsics, tuple[int, int]],
 ) -> list[bool]:
-    """Which of the objects at ``centres`` (M, 3), of half sizes ``halves`` (``half_extent``) and detected in the
+    """Which of the objects at ``centres`` (M, 3), of covariances ``covs`` (M, 3, 3) and detected in the
     keyframes ``seen[i]``, are kept: detected often enough (``exists``) in the ``keyframes`` (ids, with
     camera-to-world ``poses``, all with the detector run) that looked at them (the module's docstring). A keyframe
-    in which another of the objects stands in front of one, over its centre's pixel, did not look at it."""
+    whose sight line to one passes through another of the objects first (``hidden``) did not look at it."""
     K, (w, h) = camera
     z, u, v = project(centres, poses, K)
     inside = (u >= MARGIN * w) & (u <= (1.0 - MARGIN) * w) & (v >= MARGIN * h) & (v <= (1.0 - MARGIN) * h)
@@ -81,14 +101,9 @@ def judged(
         if exists(int(detected.sum()), int((view | detected).sum())):
             out.append(True)
             continue
-        missed = np.flatnonzero(view & ~detected)  # the keyframes an object in front may have hidden it from
-        zm, um, vm = z[missed], u[missed], v[missed]
-        nearer = (zm > 1e-6) & (zm < (zm[:, i] - halves[i])[:, None])
-        reach = K.fx * halves[None, :] / np.where(nearer, zm, 1.0)
-        covers = np.hypot(um - um[:, i : i + 1], vm - vm[:, i : i + 1]) < reach
-        covers[:, i] = False
-        hidden = int((nearer & covers).any(axis=1).sum())
-        out.append(exists(int(detected.sum()), int((view | detected).sum()) - hidden))
+        missed = np.flatnonzero(view & ~detected)  # the keyframes another object may have hidden it from
+        behind = int(hidden(poses[missed, :3, 3], i, centres, covs).sum())
+        out.append(exists(int(detected.sum()), int((view | detected).sum()) - behind))
     return out
 
 
@@ -129,11 +144,11 @@ class Looks:
             )
         return self._columns
 
-    def judged(self, centres: np.ndarray, halves: np.ndarray, seen: Sequence[Collection[int]]) -> list[bool]:
+    def judged(self, centres: np.ndarray, covs: np.ndarray, seen: Sequence[Collection[int]]) -> list[bool]:
         """``judged`` over the keyframes kept (all objects are kept until a keyframe looked)."""
         if self.camera is None or not self.poses or len(seen) == 0:
             return [True] * len(seen)
-        return judged(centres, halves, seen, *self.columns(), self.camera)
+        return judged(centres, covs, seen, *self.columns(), self.camera)
 
     def state(self) -> dict[str, np.ndarray]:
         """Plain state: the keyframes, their poses' top three rows in single precision (a visibility test needs

@@ -12,7 +12,7 @@ from perception.amodal import cut_by_border, cut_vertically, detection_feature
 from perception.anchoring import anchored_segments
 from perception.camera import Intrinsics
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
-from perception.existence import Looks, half_extent
+from perception.existence import Looks
 from perception.features import (
     FeatureConfig,
     FeatureVector,
@@ -248,7 +248,7 @@ class ObjectMapper:
         of = self._obs_keyframe
         seen = [{of[s] for f in members for s in f.sources if s < len(of)} for members in clusters]
         centres = np.array([o.mean for o in objects], float).reshape(-1, 3)
-        return self.looks.judged(centres, np.array([half_extent(o.cov) for o in objects]), seen)
+        return self.looks.judged(centres, np.array([o.cov for o in objects], float).reshape(-1, 3, 3), seen)
 
     def observation(self, source: int) -> tuple[int, FeatureVector]:
         """A stored observation (a ``FeatureVector.sources`` id): its keyframe and camera-frame feature vector."""

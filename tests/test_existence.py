@@ -28,8 +28,14 @@ def backed(z: float) -> np.ndarray:
     return T
 
 
+def ball(half: float) -> np.ndarray:
+    """The covariance of an object ``half`` metres across each way (uniform: half = sqrt(3) std)."""
+    return np.eye(3) * half**2 / 3.0
+
+
 def judge(centres: list[list[float]], halves: list[float], seen: list[set[int]], poses: np.ndarray) -> list[bool]:
-    return judged(np.array(centres), np.array(halves), seen, np.arange(len(poses)), poses, (K, SIZE))
+    covs = np.stack([ball(h) for h in halves])
+    return judged(np.array(centres), covs, seen, np.arange(len(poses)), poses, (K, SIZE))
 
 
 def test_an_object_seen_in_few_of_the_keyframes_that_looked_at_it_is_not_kept() -> None:
@@ -71,21 +77,35 @@ def test_a_keyframe_in_which_another_object_stands_in_front_did_not_look() -> No
     assert judge([back, [0.6, 0.0, 1.5]], [0.2, 0.15], [set(range(10)), set(range(60))], poses) == [False, True]
 
 
+def test_a_long_low_object_in_front_hides_only_what_is_behind_it_not_what_shows_above_it() -> None:
+    """A table 1.8 m long in front of a chair's back: the sight lines to the chair pass over the table top. The
+    table's longest half size (0.9 m) as a ball around its centre would cover them."""
+    poses = np.stack([camera_at(0.0)] * 10 + [camera_at(0.005 * i) for i in range(50)])
+    chair = [0.0, -0.3, 3.0]  # camera frame: y down, so 0.3 m above the camera's height
+    table = np.diag([0.9, 0.1, 0.45]) ** 2 / 3.0  # half sizes 0.9 x 0.1 x 0.45 m
+    covs = np.stack([ball(0.2), table])
+    seen = [set(range(10)), set(range(60))]
+    below = judged(np.array([chair, [0.0, 0.3, 1.8]]), covs, seen, np.arange(60), poses, (K, SIZE))
+    assert below == [False, True]  # the sight lines pass 0.48 m over the table's centre, 0.38 m over its top
+    tall = np.stack([ball(0.2), np.diag([0.9, 0.6, 0.45]) ** 2 / 3.0])  # a top reaching 0.3 m above its centre
+    assert judged(np.array([chair, [0.0, 0.3, 1.8]]), tall, seen, np.arange(60), poses, (K, SIZE)) == [True, True]
+
+
 def test_looks_keep_the_newest_keyframes_move_with_the_poses_and_survive_a_restart() -> None:
     looks = Looks()
-    centre, half = np.array([[0.0, 0.0, 2.0]]), np.array([0.1])
-    assert looks.judged(centre, half, [{0}]) == [True]  # nothing looked yet: every object is kept
+    centre, cov = np.array([[0.0, 0.0, 2.0]]), ball(0.1)[None]
+    assert looks.judged(centre, cov, [{0}]) == [True]  # nothing looked yet: every object is kept
     for k in range(60):
         looks.add(k, camera_at(0.01 * k), K, SIZE)
-    assert looks.judged(centre, half, [{0, 1, 2}]) == [False]
-    assert looks.judged(centre, half, [set(range(0, 60, 2))]) == [True]
+    assert looks.judged(centre, cov, [{0, 1, 2}]) == [False]
+    assert looks.judged(centre, cov, [set(range(0, 60, 2))]) == [True]
     looks.moved({k: camera_at(0.01 * k, 180.0) for k in range(3, 60)})  # now the others look away
-    assert looks.judged(centre, half, [{0, 1, 2}]) == [True]
+    assert looks.judged(centre, cov, [{0, 1, 2}]) == [True]
     again = Looks()
     again.restore(looks.state())
     assert list(again.poses) == list(looks.poses) and again.camera == looks.camera
     assert all(np.allclose(again.poses[k], looks.poses[k], atol=1e-6) for k in looks.poses)  # single precision
-    assert again.judged(centre, half, [{0, 1, 2}]) == [True]
+    assert again.judged(centre, cov, [{0, 1, 2}]) == [True]
     old = Looks()
     old.restore({})  # a state from before looks were kept
     assert old.camera is None and not old.poses
