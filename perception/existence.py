@@ -24,7 +24,7 @@ from collections.abc import Collection, Sequence
 
 import numpy as np
 
-from perception.camera import Intrinsics
+from perception.camera import Intrinsics, project_uv
 
 MIN_RATE = 0.25
 """An object detected in fewer than this share of the keyframes that looked at it is not kept."""
@@ -47,8 +47,8 @@ def project(centres: np.ndarray, poses: np.ndarray, K: Intrinsics) -> tuple[np.n
     rel = np.asarray(centres, float)[None, :, :] - poses[:, None, :3, 3]
     local = np.einsum("nji,nmj->nmi", poses[:, :3, :3], rel)
     z = local[..., 2]
-    safe = np.where(z > 1e-6, z, 1.0)
-    return z, K.fx * local[..., 0] / safe + K.cx, K.fy * local[..., 1] / safe + K.cy
+    u, v = project_uv(local[..., 0], local[..., 1], np.where(z > 1e-6, z, 1.0), K, scale_first=True)
+    return z, u, v
 
 
 def hidden(cameras: np.ndarray, target: int, centres: np.ndarray, covs: np.ndarray) -> np.ndarray:
