@@ -10,12 +10,12 @@ looked at it, and 99 % of them in more than half.
 
 A keyframe looked at an object when the detector ran on it, the object's centre lay in its image (``MARGIN``
 in from the border), no farther away than from the farthest keyframe that detected it (a bottle is not detected
-from 4 m), and no other object stood in front of it over that pixel (a chair behind another in a row; without
-this, a row's back chair fell to 16 %). An object is shown while it was detected in at least ``MIN_RATE`` of the
-keyframes that looked at it, and is judged only once ``MIN_LOOKS`` keyframes did. The clusterer keeps the
-objects not shown (``Clusterer.unkept``), so clustering runs as it would without this judgement, and an object
-is shown again once it is detected often enough. Fusion++ (McCormac et al., 2018) keeps an existence
-probability of the same kind per object. Pure computation, no I/O.
+from 4 m), and its sight line to the centre met no other object's extent first (``hidden``: a chair behind
+another in a row; without this, a row's back chair fell to 16 %). An object is shown while it was detected in
+at least ``MIN_RATE`` of the keyframes that looked at it, and is judged only once ``MIN_LOOKS`` keyframes did.
+The clusterer keeps the objects not shown (``Clusterer.unkept``), so clustering runs as it would without this
+judgement, and an object is shown again once it is detected often enough. Fusion++ (McCormac et al., 2018)
+keeps an existence probability of the same kind per object. Pure computation, no I/O.
 """
 
 from __future__ import annotations
@@ -53,8 +53,10 @@ def project(centres: np.ndarray, poses: np.ndarray, K: Intrinsics) -> tuple[np.n
 
 def hidden(cameras: np.ndarray, target: int, centres: np.ndarray, covs: np.ndarray) -> np.ndarray:
     """Per camera centre (K, 3): whether the sight line to object ``target``'s centre passes through another
-    object before reaching ``target``'s own extent. An object's extent is the ellipsoid of sqrt(3) standard
-    deviations of its covariance (``covs``, (M, 3, 3): the half size of a uniform extent)."""
+    object, one whose centre lies in front of ``target``'s own extent. An object's extent is the ellipsoid of
+    sqrt(3) standard deviations of its covariance (``covs``, (M, 3, 3): the half size of a uniform extent). A
+    large object around a smaller one (a chair in front of a couch, within the couch's ellipsoid) does not
+    hide it."""
     inv = np.linalg.inv(3.0 * np.asarray(covs, float) + 1e-6 * np.eye(3))
     sight = centres[target][None] - cameras
     reach = np.linalg.norm(sight, axis=1)
@@ -66,7 +68,8 @@ def hidden(cameras: np.ndarray, target: int, centres: np.ndarray, covs: np.ndarr
     b = 2.0 * np.einsum("kmi,kmi->km", Ad, rel)
     c = np.einsum("kmi,mij,kmj->km", rel, inv, rel) - 1.0
     t = np.clip(-b / (2.0 * a), 0.0, front[:, None])  # the line's point nearest each centre, in the ellipsoid metric
-    inside = a * t * t + b * t + c <= 0.0
+    nearer = -np.einsum("kmi,ki->km", rel, d) < front[:, None]  # its centre in front (not one it stands inside)
+    inside = (a * t * t + b * t + c <= 0.0) & nearer
     inside[:, target] = False
     return inside.any(axis=1)
 

@@ -89,6 +89,12 @@ def test_a_long_low_object_in_front_hides_only_what_is_behind_it_not_what_shows_
     assert below == [False, True]  # the sight lines pass 0.48 m over the table's centre, 0.38 m over its top
     tall = np.stack([ball(0.2), np.diag([0.9, 0.6, 0.45]) ** 2 / 3.0])  # a top reaching 0.3 m above its centre
     assert judged(np.array([chair, [0.0, 0.3, 1.8]]), tall, seen, np.arange(60), poses, (K, SIZE)) == [True, True]
+    # a couch 2 m deep around the chair, its centre 0.2 m behind the chair's: the chair stands inside its
+    # ellipsoid, in front of its centre, and is not hidden by it
+    couch = np.diag([1.0, 1.0, 1.0]) ** 2 / 3.0
+    assert judged(
+        np.array([chair, [0.0, -0.3, 3.2]]), np.stack([ball(0.2), couch]), seen, np.arange(60), poses, (K, SIZE)
+    ) == [False, True]
 
 
 def test_looks_keep_the_newest_keyframes_move_with_the_poses_and_survive_a_restart() -> None:
