@@ -10,12 +10,12 @@ looked at it, and 99 % of them in more than half.
 
 A keyframe looked at an object when the detector ran on it, the object's centre lay in its image (``MARGIN``
 in from the border), no farther away than from the farthest keyframe that detected it (a bottle is not detected
-from 4 m), and its sight line to the centre met no other object's extent first (``hidden``: a chair behind
-another in a row; without this, a row's back chair fell to 16 %). An object is shown while it was detected in
-at least ``MIN_RATE`` of the keyframes that looked at it, and is judged only once ``MIN_LOOKS`` keyframes did.
-The clusterer keeps the objects not shown (``Clusterer.unkept``), so clustering runs as it would without this
-judgement, and an object is shown again once it is detected often enough. Fusion++ (McCormac et al., 2018)
-keeps an existence probability of the same kind per object. Pure computation, no I/O.
+from 4 m), and its sight line to the centre met the extent of no other object standing in front (``hidden``:
+a chair behind another in a row; without this, a row's back chair fell to 16 %). An object is shown while it
+was detected in at least ``MIN_RATE`` of the keyframes that looked at it, and is judged only once
+``MIN_LOOKS`` keyframes did. The clusterer keeps the objects not shown (``Clusterer.unkept``), so clustering
+runs as it would without this judgement, and an object is shown again once it is detected often enough.
+Fusion++ (McCormac et al., 2018) keeps an existence probability of the same kind per object. Pure computation, no I/O.
 """
 
 from __future__ import annotations
