@@ -73,7 +73,7 @@ def test_a_keyframe_in_which_another_object_stands_in_front_did_not_look() -> No
     assert judge([back], [0.2], [set(range(10))], poses) == [False]
     # with an object 0.3 m wide standing in front of it in all of them, they did not
     assert judge([back, front], [0.2, 0.15], [set(range(10)), set(range(60))], poses) == [True, True]
-    # an object beside it, not over its centre's pixel, hides nothing
+    # an object beside the sight lines, not on them, hides nothing
     assert judge([back, [0.6, 0.0, 1.5]], [0.2, 0.15], [set(range(10)), set(range(60))], poses) == [False, True]
 
 
