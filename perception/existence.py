@@ -101,12 +101,12 @@ def judged(
             out.append(True)
             continue
         view = inside[:, i] & (z[:, i] > 1e-6) & (z[:, i] <= z[detected, i].max())
-        if exists(int(detected.sum()), int((view | detected).sum())):
+        hits, looks = int(detected.sum()), int((view | detected).sum())
+        if exists(hits, looks):
             out.append(True)
             continue
         missed = np.flatnonzero(view & ~detected)  # the keyframes another object may have hidden it from
-        behind = int(hidden(poses[missed, :3, 3], i, centres, covs).sum())
-        out.append(exists(int(detected.sum()), int((view | detected).sum()) - behind))
+        out.append(exists(hits, looks - int(hidden(poses[missed, :3, 3], i, centres, covs).sum())))
     return out
 
 
