@@ -33,6 +33,7 @@ from perception.floor import view_ends, with_span
 from perception.footprint import LARGE_CLASSES
 from perception.pixel_grid import grid_of
 from perception.support import split_support
+from perception.table_top import TOP_CLASSES, top_view
 
 NO_RETURN_SHARE = 0.2
 """A ring around a box with more than this share of pixels without depth does not bound the room behind the object
@@ -160,6 +161,9 @@ def complete_amodal(
     points' (``vertical_extent``: percentiles, not moments, since the top face of an object seen from above
     holds many points at one height; down to the ``support`` plane ``(n, d)`` it stands on, when given).
 
+    A table (``TOP_CLASSES``) seen from above, with ``up`` known, is the part of its top the view shows
+    (``table_top.top_view``) rather than its points completed; its height is completed as any view's.
+
     ``edges``: the sides of the object's box (``box_edges``); across the level ray the centre is then the middle
     of these (``BoxSides.span``) rather than of the points' own extent, and the object is as deep as the box is
     wide (``BoxSides.span`` at the points' median depth), its centre half that behind its nearest points (their
@@ -184,8 +188,11 @@ def complete_amodal(
     nearest, near, far = np.percentile(smooth @ ray, [2, 10, 90])
     low, high = (0.0, 0.0) if up is None else (float(v) for v in np.percentile(smooth @ up, [2, 98]))
     heights = (low, high)  # along up, from the camera
+    top = top_view(smooth, up) if level and label in TOP_CLASSES else None
     if label in PANEL_DEPTH_M:
         mean, cov = panel(feature_from_points(smooth, label), ray, min(PANEL_DEPTH_M[label], room))
+    elif top is not None:  # a table: the part of its top the view shows
+        mean, cov = top
     else:
         if edges is not None and level:
             assert up is not None
@@ -203,9 +210,9 @@ def complete_amodal(
     if level:
         assert up is not None
         side = np.cross(up, ray)
-        if edges is None:
+        if edges is None and top is None:
             mean = centred_across(mean, smooth, side)
-        else:  # the middle of the two ends
+        elif edges is not None:  # the middle of the two ends
             mean = mean + (float(np.mean(edges.span(side, ray, up, heights))) - mean @ side) * side
         mean, cov = with_span(mean, cov, up, *vertical_extent(smooth @ up, mean - (mean @ up) * up, up, support))
     return FeatureVector(mean, cov, f.n, label, track_id, f.sources)
