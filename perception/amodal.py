@@ -188,7 +188,7 @@ def complete_amodal(
     nearest, near, far = np.percentile(smooth @ ray, [2, 10, 90])
     low, high = (0.0, 0.0) if up is None else (float(v) for v in np.percentile(smooth @ up, [2, 98]))
     heights = (low, high)  # along up, from the camera
-    top = top_view(smooth, up) if level and label in TOP_CLASSES else None
+    top = top_view(smooth, up) if up is not None and level and label in TOP_CLASSES else None
     if label in PANEL_DEPTH_M:
         mean, cov = panel(feature_from_points(smooth, label), ray, min(PANEL_DEPTH_M[label], room))
     elif top is not None:  # a table: the part of its top the view shows
