@@ -33,7 +33,7 @@ from perception.floor import (
     with_span,
     world_floor_view,
 )
-from perception.footprint import LARGE_CLASSES, horizontal_axes, robust_gaussian, union_footprint
+from perception.footprint import LARGE_CLASSES, horizontal_axes, robust_gaussian, shares_of, union_footprint
 from perception.frame import Detection
 from perception.npda import NPDAConfig, associate
 from perception.tracks import Tracker
@@ -226,7 +226,7 @@ class ObjectMapper:
         if floor is None:
             return mean, cov
         if members[0].label in LARGE_CLASSES:
-            mean, cov = union_footprint(mean, cov, (means, covs, n), floor.up)
+            mean, cov = union_footprint(mean, cov, (means, covs, n), floor.up, shares_of(members[0].label))
         cut = None
         if all(f.sources for f in members):  # whether the image's top / bottom edge cut each view's box
             cut = np.array([[all(self._obs_cut[x][k] for x in f.sources) for k in (0, 1)] for f in members])
