@@ -336,6 +336,7 @@ class Clusterer:
                 np.array([o.mean for o in objects]),
                 np.array([o.cov for o in objects]),
                 self.config.coincident,
+                [set().union(*keyframe_sets(c, self.keyframe_of)) for c in clusters] if self.keyframe_of else None,
             )
             if len(groups) < len(objects):
                 made = {id(c): o for c, o in zip(clusters, objects, strict=True)}  # the clusters left as they were

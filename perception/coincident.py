@@ -10,6 +10,12 @@ A detector also calls one object by two names from frame to frame (a mug a "cup"
 7-Scenes kitchen a "bowl" object stood 1 cm from the "cup" it was, as large). Two objects of different classes do
 stand close (a cup on a book, a plant in a vase), but not with one centre deep inside the other and the same size:
 such a pair (``RELABELLED``, ``SAME_SIZE``) is one object, named by its larger cluster.
+
+A large object seen in parts (``footprint.LARGE_CLASSES``: a table whose views each show the part of its top in
+view) can leave its parts in clusters of their own, side by side. One object is detected once in an image, so
+its parts are never in one keyframe, while two tables that stand close are seen together. Two such objects whose
+extents touch along the line between their centres, and which no keyframe saw together, are one
+(``touching``).
 """
 
 from __future__ import annotations
@@ -17,6 +23,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+
+from perception.footprint import LARGE_CLASSES
 
 
 def extent_radius(cov: np.ndarray, stds: float) -> float:
@@ -32,16 +40,35 @@ SAME_SIZE = 1.5
 """Two objects are the same size when their reaches (``extent_radius``) differ by at most this factor."""
 
 
-def coincident_groups(labels: Sequence[str], means: np.ndarray, covs: np.ndarray, stds: float) -> list[list[int]]:
+def touching(mean_a: np.ndarray, cov_a: np.ndarray, mean_b: np.ndarray, cov_b: np.ndarray) -> bool:
+    """Whether two objects' uniform extents (``sqrt(3)`` standard deviations from their centres) touch along the
+    line between their centres."""
+    gap = mean_b - mean_a
+    dist = float(np.linalg.norm(gap))
+    if dist == 0.0:
+        return True
+    d = gap / dist
+    return dist <= float(np.sqrt(3.0 * d @ cov_a @ d) + np.sqrt(3.0 * d @ cov_b @ d))
+
+
+def coincident_groups(
+    labels: Sequence[str],
+    means: np.ndarray,
+    covs: np.ndarray,
+    stds: float,
+    keyframes: Sequence[set[int]] | None = None,
+) -> list[list[int]]:
     """Groups of object indices to join: same label, centres closer than the smaller of their reaches
     (``extent_radius`` of ``stds``); or different labels, centres closer than ``RELABELLED`` of that and reaches
-    within ``SAME_SIZE`` of each other; transitively. Every index is in exactly one group, in order; with
-    ``stds`` 0, each its own."""
+    within ``SAME_SIZE`` of each other; transitively. With the ``keyframes`` that saw each object, also two of
+    one large class (``LARGE_CLASSES``) that ``touching`` and that no keyframe saw in one group. Every index is in
+    exactly one group, in order; with ``stds`` 0, each its own."""
     n = len(labels)
     if stds <= 0:
         return [[i] for i in range(n)]
     radius = [extent_radius(c, stds) for c in covs]
     parent = list(range(n))
+    seen = [set(k) for k in keyframes] if keyframes is not None else None  # by root: the keyframes of its group
 
     def root(i: int) -> int:
         while parent[i] != i:
@@ -51,12 +78,17 @@ def coincident_groups(labels: Sequence[str], means: np.ndarray, covs: np.ndarray
     for i in range(n):
         for j in range(i + 1, n):
             gap, reach = float(np.linalg.norm(means[i] - means[j])), min(radius[i], radius[j])
+            ri, rj = root(i), root(j)
             if labels[i] == labels[j]:
                 join = gap < reach
+                if not join and seen is not None and labels[i] in LARGE_CLASSES and ri != rj:
+                    join = not seen[ri] & seen[rj] and touching(means[i], covs[i], means[j], covs[j])
             else:
                 join = gap < RELABELLED * reach and max(radius[i], radius[j]) <= SAME_SIZE * reach
-            if join:
-                parent[root(j)] = root(i)
+            if join and ri != rj:
+                parent[rj] = ri
+                if seen is not None:
+                    seen[ri] |= seen[rj]
     groups: dict[int, list[int]] = {}
     for i in range(n):
         groups.setdefault(root(i), []).append(i)
