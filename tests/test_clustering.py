@@ -243,6 +243,28 @@ def test_one_object_under_two_labels_is_one_but_a_cup_on_a_book_and_a_plant_in_a
     assert coincident_groups(labels, means, covs, 1.5) == [[0], [1], [2], [3], [4], [5]]
 
 
+def test_parts_of_one_table_never_seen_together_are_one_but_two_tables_seen_together_and_chairs_stay_apart() -> None:
+    from perception.coincident import coincident_groups, touching
+
+    def box(x: float, y: float) -> np.ndarray:  # a uniform extent x by y by 0.75 m
+        return np.diag(np.array([x, y, 0.75]) ** 2 / 12.0)
+
+    # the two ends of a 1.6 m table, each cluster's views showing 0.8 m of its top: centres 0.8 m apart
+    means = np.array([[0.0, 0, 0.37], [0.8, 0, 0.37], [3.0, 0, 0.37], [3.85, 0, 0.37], [6.0, 0, 0.45], [6.5, 0, 0.45]])
+    covs = np.array([box(0.8, 0.7), box(0.8, 0.7), box(0.8, 0.7), box(0.8, 0.7), box(0.5, 0.5), box(0.5, 0.5)])
+    labels = ["dining table"] * 4 + ["chair"] * 2
+    assert touching(means[0], covs[0], means[1], covs[1]) and not touching(means[2], covs[2], means[3], covs[3])
+    assert touching(means[4], covs[4], means[5], covs[5])
+    seen = [{1, 2, 3}, {7, 8}, {20, 21}, {22, 23}, {30, 31}, {32}]
+    # without the keyframes, as before: each its own (their centres lie outside each other's reach)
+    assert coincident_groups(labels, means, covs, 1.5) == [[0], [1], [2], [3], [4], [5]]
+    # the table's two ends are one; two tables 5 cm apart stay two; two chairs touching are not a large class
+    assert coincident_groups(labels, means, covs, 1.5, seen) == [[0, 1], [2], [3], [4], [5]]
+    # two tables side by side, detected in one keyframe, are two however they touch
+    seen[1] = {3, 7, 8}
+    assert coincident_groups(labels, means, covs, 1.5, seen) == [[0], [1], [2], [3], [4], [5]]
+
+
 def test_the_clusterer_names_an_object_seen_under_two_labels_by_its_larger_cluster() -> None:
     clusterer = Clusterer(ClusterConfig(min_cluster_size=3, min_samples=3))
     rng = np.random.default_rng(7)
