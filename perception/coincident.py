@@ -24,6 +24,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from perception.floor import view_ends
 from perception.footprint import LARGE_CLASSES
 
 
@@ -48,7 +49,9 @@ def touching(mean_a: np.ndarray, cov_a: np.ndarray, mean_b: np.ndarray, cov_b: n
     if dist == 0.0:
         return True
     d = gap / dist
-    return dist <= float(np.sqrt(3.0 * d @ cov_a @ d) + np.sqrt(3.0 * d @ cov_b @ d))
+    far_a = view_ends(mean_a[None], cov_a[None], d)[0][0]
+    near_b = view_ends(mean_b[None], cov_b[None], d)[1][0]
+    return bool(near_b <= far_a)
 
 
 def coincident_groups(
