@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import distance_transform_edt, uniform_filter
 
+from perception.backrest import BACKREST_CLASSES, facing_camera, seen_over
 from perception.camera import Intrinsics, pixels_to_points
 from perception.features import (
     PANEL_DEPTH_M,
@@ -336,12 +337,14 @@ def detection_feature(
     up: np.ndarray | None = None,
     occluders: Sequence[DepthSegment] = (),
     segmented: Segmented | None = None,
+    floor: float | None = None,
 ) -> FeatureVector | None:
     """The camera-frame feature vector of a detection (amodally completed when configured, its near and far sides
     on locally averaged depth: ``FeatureConfig.near_radius``), its pixels without those of the other detections
     in front of it (``occluders``: ``features.in_front``; ``segmented``: its own ``features.depth_segment``, when
     the caller has it), centred across its ray between its box's edges when the image's sides do not cut it
-    (``box_edges``); None when too few points."""
+    (``box_edges``); None when too few points. ``floor``: the floor's height along ``up`` (camera frame), when
+    known: a chair's backrest seen over a table is then its back (``perception.backrest``)."""
     pixels = object_pixels(depth_m, box, config, occluders, segmented, label)
     rows, cols, support = split_support(depth_m, K, box, *pixels, config)
     idx = stride_subsample(len(rows), config.max_points)
@@ -349,6 +352,7 @@ def detection_feature(
     if config.amodal is None or len(points) < 3:
         return feature_from_points(points, label, track_id)
     smooth = local_mean_depth(depth_m, rows, cols, config.near_radius)[idx]
+    reference = pixels_to_points(cols[idx], rows[idx], smooth, K)
     sideways = cut_by_border(box, depth_m.shape[1], depth_m.shape[0])[0]
     f = complete_amodal(
         points,
@@ -357,11 +361,13 @@ def detection_feature(
         config.amodal,
         room_behind(depth_m, box, rows, cols, share=PANEL_ROOM_SHARE if label in PANEL_DEPTH_M else None),
         sideways,
-        reference=pixels_to_points(cols[idx], rows[idx], smooth, K),
+        reference=reference,
         up=up,
         support=support,
         edges=None if sideways or label in EDGES_OWN else box_edges(box, K, cols[idx], smooth),
     )
+    if f is not None and up is not None and floor is not None and label in BACKREST_CLASSES:
+        return facing_camera(f, up) if seen_over(reference, up, floor, depth_m, box) else f
     if f is None or up is None or label not in PANEL_DEPTH_M:
         return f
     return FeatureVector(*spanning_box(f.mean, f.cov, box, K, up), f.n, f.label, f.track_id, f.sources)

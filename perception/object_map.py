@@ -153,7 +153,8 @@ class ObjectMapper:
         h, w = depth_m.shape[:2]
         whole = [not any(cut_by_border(d.box, w, h)) for d in detections]
         plane = level_plane(depth_m, K, self.floor_config)
-        up = self._camera_up(pose, plane)
+        up, floor = self._camera_up(pose, plane), self.floor
+        ground = None if floor is None else floor.height - float(floor.up @ np.asarray(pose)[:3, 3])  # camera frame
         found = anchored_segments(depth_m, [(d.box, d.label) for d in detections], self.features)
         segments = [f[2] for f in found]
         occluders = [[s for s in segments if s is not None and s is not mine] for mine in segments]
@@ -172,7 +173,7 @@ class ObjectMapper:
             None
             if behind
             else _weighed(
-                detection_feature(depth_m, K, d.box, d.label, t, self.features, up, others, own),
+                detection_feature(depth_m, K, d.box, d.label, t, self.features, up, others, own, ground),
                 inside,
                 self.features.cut_weight,
             )

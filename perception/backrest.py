@@ -1,0 +1,91 @@
+"""A chair seen from its front over something nearer shows its backrest: its far side (issue 24).
+
+The completion behind a view's visible surface (``amodal.complete_amodal``) puts an object's centre half its
+depth behind the nearest points it shows. That holds for a box from every side, and for a chair seen from
+behind (its backrest is its near side) or from its front with its seat in view (the seat's front edge is). A
+chair at a table, seen across the table, shows its backrest alone: the table hides its seat and legs, and its
+backrest is the chair's back. Completed as a box, it lies a chair's depth too far from the camera: the 7-Scenes
+chairs across the table lay 0.19-0.24 m too far along the ray, and on the development scenes, once chairs were
+rendered as chairs (``sources.family_render.chair_parts``), a tenth of the chairs lay 0.18 m or more towards
+their backs.
+
+A chair's view is taken as its backrest seen from the front (``seen_over``) when both hold:
+
+- its lowest visible point lies above ``BACK_ONLY`` of its highest one over the floor: no seat shows (a chair's
+  seat is at about half its height);
+- just under its box, the image shows something nearer than the chair (``NEARER_M``): what hides its lower part
+  stands in front of it. A chair seen from behind has its table behind it; a chair with its seat hidden by its
+  own backrest has the floor or the seat under the box, not nearer.
+
+Its centre then lies half its depth in front of the backrest's back (``facing_camera``).
+
+Pure computation, no I/O.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from perception.features import Box, FeatureVector
+
+BACKREST_CLASSES: frozenset[str] = frozenset({"chair"})
+"""Classes whose upper part is a backrest standing at their back."""
+
+BACK_ONLY = 0.55
+"""A view shows its backrest only when its lowest point lies above this share of its top's height over the
+floor (a chair's seat lies at about half its height)."""
+
+NEARER_M = 0.1
+"""Under the box, what lies this much nearer than the view's nearest points hides the object's lower part."""
+
+STRIP_SHARE = 0.15
+"""The strip under a box that is looked at: this share of the box's height (at least ``STRIP_PX`` rows)..."""
+
+STRIP_PX = 4
+
+VALID_SHARE = 0.3
+"""...of which at least this share of pixels must have depth."""
+
+BACKREST_M = 0.05
+"""A backrest's thickness: its visible front lies this much in front of the chair's back."""
+
+
+def hidden_below(depth_m: np.ndarray, box: Box, nearest_z: float) -> bool:
+    """Whether the strip of the image under ``box`` (its middle half across) lies ``NEARER_M`` nearer (camera z)
+    than ``nearest_z``: something in front hides the object's lower part. False when the box reaches the image's
+    bottom or the strip has too few pixels with depth."""
+    h, w = depth_m.shape[:2]
+    x1, y1, x2, y2 = box
+    top = int(np.ceil(y2))
+    bottom = min(h, top + max(STRIP_PX, round(STRIP_SHARE * (y2 - y1))))
+    left, right = int(x1 + 0.25 * (x2 - x1)), int(np.ceil(x2 - 0.25 * (x2 - x1)))
+    if top >= h or right <= left:
+        return False
+    strip = depth_m[top:bottom, max(left, 0) : min(right, w)]
+    valid = strip[strip > 0]
+    if valid.size < VALID_SHARE * strip.size or valid.size == 0:
+        return False
+    return float(np.median(valid)) < nearest_z - NEARER_M
+
+
+def seen_over(points: np.ndarray, up: np.ndarray, floor: float, depth_m: np.ndarray, box: Box) -> bool:
+    """Whether a view's camera-frame ``points`` are a backrest seen from the front over something nearer
+    (module docstring); ``floor``: the floor's height along the camera-frame ``up`` (up . p == floor)."""
+    low, high = (float(v) - floor for v in np.percentile(points @ up, [2, 98]))
+    if high <= 0.0 or low < BACK_ONLY * high:
+        return False
+    return hidden_below(depth_m, box, float(np.percentile(points[:, 2], 2)))
+
+
+def facing_camera(f: FeatureVector, up: np.ndarray) -> FeatureVector:
+    """A completed view (its centre half its depth behind its nearest points, along the level ray) turned into
+    one whose nearest points are the back: the centre moves towards the camera by its depth less
+    ``BACKREST_M``."""
+    level = f.mean - (f.mean @ up) * up
+    norm = float(np.linalg.norm(level))
+    if norm == 0.0:
+        return f
+    ray = level / norm
+    depth = float(np.sqrt(12.0 * max(float(ray @ f.cov @ ray), 0.0)))
+    mean = f.mean - max(depth - BACKREST_M, 0.0) * ray
+    return FeatureVector(mean, f.cov, f.n, f.label, f.track_id, f.sources)

@@ -1,0 +1,97 @@
+"""A chair seen across a table shows its backrest, its far side (``perception.backrest``; issue 24).
+
+Rendered exactly: a table and a chair at its far side facing it, the chair as the scene family renders chairs
+(seat, legs, backrest: ``sources.family_render.chair_parts``), the detector's box from the instance mask.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from perception.amodal import detection_feature
+from perception.backrest import seen_over
+from perception.camera import Intrinsics
+from perception.features import FeatureConfig, depth_points
+from sources.base import ObjectTruth
+from sources.family_render import chair_parts
+from sources.raycast import Renderer, box_surfaces, object_texture, room_surfaces, surface_texture
+from sources.scene import look_rotation
+
+W, H = 640, 480
+K = Intrinsics(525.0, 525.0, (W - 1) / 2.0, (H - 1) / 2.0)
+TABLE = ObjectTruth(1, "dining table", (4.5, 4.5, 0.375), (1.6, 0.8, 0.75), 0.0)
+CHAIR = ObjectTruth(2, "chair", (4.5, 5.19, 0.45), (0.44, 0.46, 0.9), np.pi)  # faces -y: the table
+
+
+def _renderer(objects: list[ObjectTruth]) -> Renderer:
+    light = np.array([4.5, 4.5, 2.4])
+    out = room_surfaces((9.0, 9.0, 2.6), light, lambda k, w, h: surface_texture(np.random.default_rng([5, k]), w, h))
+    rng = np.random.default_rng(5)
+    for o in objects:
+        texture = object_texture(rng, max(o.size), rng.uniform(60.0, 200.0, 3))
+        for part in chair_parts(o) if o.label == "chair" else [o]:
+            out += box_surfaces(part, texture, light, rng)
+    return Renderer(out, K, W, H)
+
+
+def _pose(position: tuple[float, float, float]) -> np.ndarray:
+    d = np.asarray(CHAIR.center) - np.asarray(position)
+    pose = np.eye(4)
+    yaw, pitch = np.arctan2(d[1], d[0]), np.arctan2(d[2], np.hypot(d[0], d[1]))
+    pose[:3, :3] = look_rotation(np.array([yaw]), np.array([pitch]), np.zeros(1))[0]
+    pose[:3, 3] = position
+    return pose
+
+
+def _view(objects: list[ObjectTruth], position: tuple[float, float, float]) -> tuple[bool, float, float]:
+    """(whether the chair's view is a backrest seen over something, its completed centre's level distance from
+    the chair's true centre with the floor known, and without it)."""
+    pose = _pose(position)
+    r = _renderer(objects).render(pose)
+    depth = np.where(r.depth > 0, r.depth, np.nan).astype(np.float32)
+    v, u = np.nonzero(r.ids == CHAIR.id)
+    box = (float(u.min()), float(v.min()), float(u.max() + 1), float(v.max() + 1))
+    up = pose[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    floor = -float(pose[2, 3])  # the floor's height along up in the camera frame
+    over = seen_over(depth_points(depth, K, v, u), up, floor, depth, box)
+    errors = []
+    for known in (floor, None):
+        f = detection_feature(depth, K, box, "chair", 0, FeatureConfig(), up, floor=known)
+        assert f is not None
+        world = pose[:3, :3] @ f.mean + pose[:3, 3]
+        errors.append(float(np.linalg.norm(world[:2] - np.asarray(CHAIR.center[:2]))))
+    return over, errors[0], errors[1]
+
+
+@pytest.mark.parametrize("side", [-0.6, 0.0, 0.5])
+def test_a_chair_seen_across_its_table_lies_in_front_of_its_backrest(side: float) -> None:
+    over, error, as_box = _view([TABLE, CHAIR], (4.5 + side, 2.6, 1.4))
+    assert over
+    assert as_box > 0.2  # completed as a box: a chair's depth too far
+    assert error < 0.08
+
+
+def test_a_chair_seen_from_behind_or_with_its_seat_in_view_is_completed_as_a_box() -> None:
+    behind, error, as_box = _view([TABLE, CHAIR], (4.5, 7.4, 1.4))
+    assert not behind and error == as_box and error < 0.1
+    front, error, as_box = _view([CHAIR], (4.5, 2.6, 1.4))  # no table: its seat and legs show
+    assert not front and error == as_box and error < 0.1
+
+
+def test_a_rendered_chair_fills_its_box_to_every_face_with_its_backrest_at_its_back() -> None:
+    parts = chair_parts(ObjectTruth(7, "chair", (2.0, 3.0, 0.45), (0.44, 0.46, 0.9), 0.3))
+    c, s = np.cos(0.3), np.sin(0.3)
+    lows, highs = [], []
+    for p in parts:
+        assert p.id == 7 and p.yaw == 0.3
+        d = np.asarray(p.center) - np.array([2.0, 3.0, 0.45])
+        local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])  # in the chair's frame
+        lows.append(local - np.asarray(p.size) / 2.0)
+        highs.append(local + np.asarray(p.size) / 2.0)
+    half = np.array([0.22, 0.23, 0.45])
+    assert np.all(np.min(lows, axis=0) >= -half - 1e-9) and np.all(np.max(highs, axis=0) <= half + 1e-9)
+    np.testing.assert_allclose(np.min(lows, axis=0), -half, atol=1e-9)  # the box is the chair's truth
+    np.testing.assert_allclose(np.max(highs, axis=0), half, atol=1e-9)
+    back = max(range(len(parts)), key=lambda k: parts[k].size[2])  # the tallest part: the backrest
+    assert highs[back][1] < -0.15 and highs[back][2] == pytest.approx(0.45)  # at -y (the chair faces +y), on top
