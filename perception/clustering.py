@@ -341,7 +341,7 @@ class Clusterer:
             if len(groups) < len(objects):
                 made = {id(c): o for c, o in zip(clusters, objects, strict=True)}  # the clusters left as they were
                 joined = [clusters[g[0]] if len(g) == 1 else [f for i in g for f in clusters[i]] for g in groups]
-                clusters = sorted(self._cut(joined), key=len, reverse=True)  # a joined group, a part left whole
+                clusters = sorted(self._cut(joined, self.locate), key=len, reverse=True)  # not back into its parts
                 objects = self._carry_ids(clusters, made)
         if self.judge is not None:
             self.unkept = {o.id for o, ok in zip(objects, self.judge(clusters, objects), strict=True) if not ok}
@@ -351,11 +351,12 @@ class Clusterer:
         log.debug("re-clustered %d feature vectors into %d objects", len(self.features), len(self.objects))
         return self.objects
 
-    def _cut(self, clusters: list[list[FeatureVector]]) -> list[list[FeatureVector]]:
-        """Clusters that hold two views of one keyframe cut apart (``perception.cannot_link``), if configured."""
+    def _cut(self, clusters: list[list[FeatureVector]], place: Locate | None = None) -> list[list[FeatureVector]]:
+        """Clusters that hold two views of one keyframe cut apart (``perception.cannot_link``), if configured;
+        not into parts that stand in one place, each part's object pooled or where ``place`` puts it."""
         if not (self.config.split_shared and self.keyframe_of):
             return clusters
-        return split_all(clusters, self.keyframe_of, self.config.min_cluster_size, self.config.coincident)
+        return split_all(clusters, self.keyframe_of, self.config.min_cluster_size, self.config.coincident, place)
 
     def _compact(self, live: Collection[int]) -> None:
         """At most ``max_features`` vectors where pooling allows (``perception.track_retirement``)."""

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from perception.cannot_link import SHARED_LEAST, shared_keyframes, split_by_keyframes
 from perception.clustering import ClusterConfig, Clusterer
-from perception.features import FeatureVector
+from perception.features import FeatureVector, merge_features
 
 
 def _views(
@@ -94,3 +96,24 @@ def test_the_clusterer_cuts_a_cluster_that_took_two_chairs_of_one_keyframe() -> 
     assert len(objects) == 2
     assert abs(objects[0].mean[0] - 0.0) < 0.1 and abs(objects[1].mean[0] - 0.5) < 0.1
     assert sorted(o.n_observations for o in objects) == [13, 15]
+
+
+def test_a_cut_is_not_made_into_parts_whose_objects_would_stand_in_one_place() -> None:
+    """A chair whose views in a few keyframes lie high on its back (a second box on it): pooled, the two parts
+    stand 0.36 m apart and are cut; placed as the mapper places objects (here: standing on the floor), they stand
+    in one place, so the coincident rule would join them again, and the cut is not made."""
+    seat, keyframe_of = _views([0.0], 12, seed=6)
+    backs = [
+        FeatureVector(
+            seat[k].mean + np.array([0.0, 0.1, 0.35]), seat[k].cov, 50, "chair", 700 + k, (len(keyframe_of) + k,)
+        )
+        for k in range(6)
+    ]
+    members, keyframe_of = seat + backs, keyframe_of + list(range(6))
+    assert len(split_by_keyframes(members, keyframe_of, min_size=3, stds=1.5)) == 2
+
+    def on_floor(part: Sequence[FeatureVector]) -> tuple[np.ndarray, np.ndarray]:
+        pooled = merge_features(part)
+        return np.array([*pooled.mean[:2], 0.45]), pooled.cov
+
+    assert split_by_keyframes(members, keyframe_of, min_size=3, stds=1.5, place=on_floor) == [members]
