@@ -112,7 +112,10 @@ def _apart(parts: list[list[FeatureVector]], stds: float, place: Place | None = 
     located = []
     for p in parts:
         where = place(p) if place is not None else None
-        located.append(where if where is not None else (merge_features(p).mean, merge_features(p).cov))
+        if where is None:
+            pooled = merge_features(p)
+            where = (pooled.mean, pooled.cov)
+        located.append(where)
     means, covs = np.stack([m for m, _ in located]), np.stack([c for _, c in located])
     return len(coincident_groups([p[0].label for p in parts], means, covs, stds)) == len(parts)
 
