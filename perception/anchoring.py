@@ -17,8 +17,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from perception.coco import FLOOR_CLASSES
 from perception.features import (
     AROUND,
+    BEYOND,
     LARGER,
     Box,
     FeatureConfig,
@@ -65,14 +67,17 @@ class PixelCounts:
         return t[b2, a2] - t[b1, a2] - t[b2, a1] + t[b1, a1]
 
 
-def explains(found: Sequence[Segmented], margin_m: float) -> np.ndarray:
+def explains(found: Sequence[Segmented], margin_m: float, standing: Sequence[bool] = ()) -> np.ndarray:
     """Which detection's object each segment shows (``[i, j]``: segment ``i`` shows detection ``j``'s): anchored
     within ``j``'s segment (its depths, ``margin_m`` either side: a plant's leaves before a refrigerator's box lie
     nearer than the plant's own anchor), ``EXPLAINED`` of its pixels inside ``j``'s box, and ``j``'s box neither
     around its own (``features.AROUND``) nor far larger (``features.LARGER``): a bottle on a table shows the
     bottle, whose pixels lie in the table's box. The box tests run on all pairs at once, the pixel counts
     (``PixelCounts``) only on the pairs they leave: a pass over the pixels per pair cost 0.50-0.54 s per keyframe for
-    100 overlapping detections."""
+    100 overlapping detections. ``standing`` (per detection): its object stands on the floor
+    (``coco.FLOOR_CLASSES``), so nothing is under it, and a box around it or far larger shows what stands before
+    it when its anchor lies beyond that one's (``BEYOND``): a chair behind a couch, out of the depth sensor's
+    range, whose box holds only the couch's depth, showed a chair on the couch."""
     n = len(found)
     shows = np.zeros((n, n), bool)
     picked = [(k, seg) for k, (rows, _, seg) in enumerate(found) if seg is not None and len(rows) > 0]
@@ -87,7 +92,12 @@ def explains(found: Sequence[Segmented], margin_m: float) -> np.ndarray:
     held = np.clip(x2 - x1, 0.0, None) * np.clip(y2 - y1, 0.0, None) / area[:, None]  # as ``features.overlap``
     larger = area[None, :] / area[:, None]
     within = (near[None, :] - margin_m <= anchor[:, None]) & (anchor[:, None] <= far[None, :] + margin_m)
-    maybe = within & (held < AROUND) & (larger < LARGER)
+    beyond = anchor[:, None] > anchor[None, :] + BEYOND * margin_m
+    if len(standing):
+        beyond &= np.asarray(standing, bool)[valid][:, None]
+    else:
+        beyond[:] = False
+    maybe = within & (((held < AROUND) & (larger < LARGER)) | beyond)
     np.fill_diagonal(maybe, False)
     for a in np.flatnonzero(maybe.any(1)):
         rows, cols, _ = found[valid[a]]
@@ -97,11 +107,11 @@ def explains(found: Sequence[Segmented], margin_m: float) -> np.ndarray:
     return shows
 
 
-def anchored_on(found: Sequence[Segmented], margin_m: float) -> list[list[Box]]:
+def anchored_on(found: Sequence[Segmented], margin_m: float, standing: Sequence[bool] = ()) -> list[list[Box]]:
     """Per detection (its ``depth_segment``), the boxes of the other detections that its segment shows rather
     than its own object (``explains``), unless its own shows theirs as well (one object detected twice, under
     two labels: each keeps its view)."""
-    shows = explains(found, margin_m)
+    shows = explains(found, margin_m, standing)
     only = shows & ~shows.T  # a detection shows only detections with a segment
     boxes = {k: seg.box for k, (_, _, seg) in enumerate(found) if seg is not None}
     return [[boxes[int(j)] for j in np.flatnonzero(row)] for row in only]
@@ -134,5 +144,5 @@ def anchored_segments(depth_m: np.ndarray, boxes: Sequence[tuple[Box, str]], con
     """Each detection's (box, label) ``depth_segment``, anchored again off the detections it shows instead of its
     own object (``anchored_on``)."""
     found = [depth_segment(depth_m, box, config, label) for box, label in boxes]
-    under = anchored_on(found, config.gap_m)
+    under = anchored_on(found, config.gap_m, [label in FLOOR_CLASSES for _, label in boxes])
     return [reanchored(depth_m, f, config, u) if u else f for f, u in zip(found, under, strict=True)]

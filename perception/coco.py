@@ -1,4 +1,5 @@
-"""The 80 COCO detection class names in the standard (contiguous, 0-based) order."""
+"""The 80 COCO detection class names in the standard (contiguous, 0-based) order, and the classes that stand on
+the floor."""
 
 from __future__ import annotations
 
@@ -84,3 +85,8 @@ COCO_CLASSES: tuple[str, ...] = (
     "hair drier",
     "toothbrush",
 )
+
+FLOOR_CLASSES: frozenset[str] = frozenset(
+    {"chair", "couch", "bed", "dining table", "refrigerator", "toilet", "bench", "suitcase", "oven"}
+)
+"""COCO classes that stand on the floor."""

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from perception.camera import Intrinsics, pixels_to_points
+from perception.coco import FLOOR_CLASSES
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +163,7 @@ def object_pixels(
     rows, cols, own = segmented if segmented is not None else depth_segment(depth_m, box, config, label)
     if own is None or not occluders:
         return rows, cols
-    keep = ~in_front(depth_m[rows, cols], rows, cols, own, occluders, config.gap_m)
+    keep = ~in_front(depth_m[rows, cols], rows, cols, own, occluders, config.gap_m, label in FLOOR_CLASSES)
     return rows[keep], cols[keep]
 
 
@@ -212,6 +213,10 @@ LARGER = 4.0
 """Another detection's box this many times larger than a box is behind or under it, not in front of it
 (``in_front``): a table's depth segment runs on across its top to the bottle standing on it."""
 
+BEYOND = 2.0
+"""A floor-standing object anchored this many ``FeatureConfig.gap_m`` beyond another detection lies behind that
+one's object, whatever their boxes (``in_front``, ``anchoring.explains``): nothing stands under it."""
+
 
 def in_front(
     depths: np.ndarray,
@@ -220,17 +225,20 @@ def in_front(
     own: DepthSegment,
     occluders: Sequence[DepthSegment],
     margin_m: float,
+    standing: bool = False,
 ) -> np.ndarray:
     """Which of a detection's pixels belong to another detection in front of it: inside that one's box and within
     its depth segment, when that one's anchor lies more than ``margin_m`` nearer than this one's. A box around an
     object behind another (a table behind a chair, the second chair of a row seen at a slant) holds the nearer
     one's pixels, joined to its own depth segment where they touch; they pulled its near side, and with it the
     completed centre, 0.3-0.5 m towards the camera. A box that holds most of this one (``AROUND``: a table
-    under a cup, a couch behind a teddy bear) or is far larger (``LARGER``) is not in front of it."""
+    under a cup, a couch behind a teddy bear) or is far larger (``LARGER``) is not in front of it, unless this one
+    ``standing`` on the floor is anchored ``BEYOND`` it: a chair behind a couch."""
     out = np.zeros(len(depths), bool)
     for o in occluders:
         held, larger = overlap(own.box, o.box)
-        if o.anchor >= own.anchor - margin_m or held >= AROUND or larger >= LARGER:
+        behind = standing and o.anchor < own.anchor - BEYOND * margin_m
+        if o.anchor >= own.anchor - margin_m or ((held >= AROUND or larger >= LARGER) and not behind):
             continue
         out |= in_box(rows, cols, o.box) & (depths >= o.near) & (depths <= o.far)
     return out

@@ -3,7 +3,7 @@
 A camera looking down at a room (a robot's, a person's) sees the floor in the lower part of most images. Each
 keyframe contributes the dominant level plane of its lower half (``level_plane``: camera frame); moved into the
 world by the keyframe's pose, the lowest height that many keyframes agree on is the floor and the median
-normal of those planes is "up" (``Floor.estimate``). Furniture that stands on the floor (``FLOOR_CLASSES``) then
+normal of those planes is "up" (``Floor.estimate``). Furniture that stands on the floor (``coco.FLOOR_CLASSES``) then
 reaches down to it (``on_floor``): a chair near a downward-looking camera has its legs cut off by the image's
 lower edge in every view, and its visible part alone puts its centre 5-10 cm too high. Other objects reach from
 the bottom to the top that their views see whole (``vertical_span``); a screen whose top no view sees is as tall
@@ -20,11 +20,6 @@ import numpy as np
 
 from perception.camera import Intrinsics, pixels_to_points
 from perception.features import level_hypotheses
-
-FLOOR_CLASSES: frozenset[str] = frozenset(
-    {"chair", "couch", "bed", "dining table", "refrigerator", "toilet", "bench", "suitcase", "oven"}
-)
-"""COCO classes that stand on the floor."""
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ from perception.amodal import cut_by_border, cut_vertically, detection_feature
 from perception.anchoring import anchored_segments
 from perception.camera import Intrinsics
 from perception.clustering import ClusterConfig, Clusterer, ObjectEllipsoid
+from perception.coco import FLOOR_CLASSES
 from perception.existence import Looks
 from perception.features import (
     FeatureConfig,
@@ -21,7 +22,6 @@ from perception.features import (
     transform_feature,
 )
 from perception.floor import (
-    FLOOR_CLASSES,
     SCREEN_ASPECT,
     Floor,
     FloorConfig,

@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from perception.anchoring import PixelCounts, anchored_on, anchored_segments
-from perception.features import FeatureConfig, depth_segment, in_box
+from perception.features import FeatureConfig, depth_segment, in_box, in_front, object_pixels
 
 
 def _wall(z: float = 4.0, shape: tuple[int, int] = (60, 80)) -> np.ndarray:
@@ -105,6 +105,48 @@ def test_one_object_detected_under_two_labels_keeps_both_views() -> None:
     plain = [depth_segment(depth, b, cfg, label) for b, label in boxes]
     assert anchored_on(plain, cfg.gap_m) == [[], []]
     assert all(s is not None for _, _, s in anchored_segments(depth, boxes, cfg))
+
+
+def _couch_before_a_chair() -> tuple[np.ndarray, tuple[float, ...], tuple[float, ...]]:
+    """A couch's back receding from 2.0 to 3.6 m across the image, far larger than the box of a chair behind its
+    far end; the chair itself lies beyond the depth sensor's range (no depth)."""
+    depth = np.full((60, 80), np.nan, np.float32)
+    depth[20:60, 0:80] = np.linspace(2.0, 3.6, 80)[None, :]  # the couch
+    return depth, (0.0, 20.0, 80.0, 60.0), (55.0, 10.0, 75.0, 45.0)
+
+
+def test_a_chair_behind_a_couch_out_of_the_sensors_range_gives_no_view() -> None:
+    """Every pixel with depth in the chair's box is the couch's, which holds the box and is far larger: a chair
+    stands on the floor, so the couch is not under it and its box shows the couch (no view). A teddy bear's box in
+    the same place keeps its segment: it may sit on the couch."""
+    depth, couch, chair = _couch_before_a_chair()
+    cfg = FeatureConfig()
+    alone = depth_segment(depth, chair, cfg, "chair")[2]
+    couch_alone = depth_segment(depth, couch, cfg, "couch")[2]
+    assert alone is not None and couch_alone is not None and alone.anchor > couch_alone.anchor + 0.1
+    out = anchored_segments(depth, [(couch, "couch"), (chair, "chair")], cfg)
+    assert out[1][2] is None and len(out[1][0]) == 0
+    assert out[0][2] is not None and abs(out[0][2].anchor - couch_alone.anchor) < 1e-6  # the couch keeps its own
+    bear = anchored_segments(depth, [(couch, "couch"), (chair, "teddy bear")], cfg)
+    assert bear[1][2] == alone
+
+
+def test_a_chair_behind_a_couch_keeps_only_its_own_pixels() -> None:
+    """The chair's backrest 3.53 m away joins the couch's far end in one depth segment: the couch's pixels in its
+    box leave (``in_front``, standing), its own stay; for an object that is not floor-standing they stay."""
+    depth, couch, chair = _couch_before_a_chair()
+    depth[10:20, 55:75] = 3.53  # the chair's backrest above the couch's back
+    cfg = FeatureConfig()
+    own = depth_segment(depth, couch, cfg, "couch")[2]
+    rows, cols, mine = depth_segment(depth, chair, cfg, "chair")
+    assert own is not None and mine is not None and depth[rows, cols].min() < 3.4  # joined to the couch
+    z = depth[rows, cols]
+    out = in_front(z, rows, cols, mine, [own], cfg.gap_m, standing=True)
+    assert np.all(z[~out] >= 3.53 - 1e-6) and np.all(z[out] < 3.53) and (~out).sum() == 200
+    assert not in_front(z, rows, cols, mine, [own], cfg.gap_m).any()
+    kept = object_pixels(depth, chair, cfg, [own], label="chair")
+    assert len(kept[0]) == 200 and np.all(depth[kept] == np.float32(3.53))
+    assert len(object_pixels(depth, chair, cfg, [own], label="teddy bear")[0]) == len(rows)
 
 
 @settings(max_examples=300, deadline=None)
