@@ -296,21 +296,6 @@ def stride_subsample(n: int, k: int) -> np.ndarray:
     return np.linspace(0, n - 1, k).round().astype(np.int64)
 
 
-def level_hypotheses(points: np.ndarray, max_tilt_deg: float, hypotheses: int = 64) -> tuple[np.ndarray, np.ndarray]:
-    """RANSAC plane hypotheses through triplets of camera-frame ``points`` (fixed seed: deterministic) whose
-    normal lies within ``max_tilt_deg`` of the camera's vertical axis: unit normals (M, 3) turned towards the
-    camera's up (-y) and offsets (M,), n . p + d = 0."""
-    triplets = points[np.random.default_rng(0).integers(0, len(points), (hypotheses, 3))]
-    normals = np.cross(triplets[:, 1] - triplets[:, 0], triplets[:, 2] - triplets[:, 0])
-    length = np.linalg.norm(normals, axis=1)
-    ok = length > 1e-9
-    normals = normals[ok] / length[ok, None]
-    normals *= np.where(normals[:, 1] > 0, -1.0, 1.0)[:, None]
-    offsets = -np.einsum("ij,ij->i", normals, triplets[ok, 0])
-    level = -normals[:, 1] >= np.cos(np.radians(max_tilt_deg))
-    return normals[level], offsets[level]
-
-
 def feature_from_points(points: np.ndarray, label: str, track_id: int = -1) -> FeatureVector | None:
     """The feature vector (mean, covariance, class) of a set of world points, None when too few."""
     if len(points) < 3:

@@ -16,13 +16,13 @@ from perception.features import (
     FeatureConfig,
     depth_points,
     dominant_depth_mask,
-    level_hypotheses,
     object_pixels,
     ring_windows,
     segment_anchor,
     stride_subsample,
     transform,
 )
+from perception.floor import level_hypotheses
 
 
 def ring_pixels(
