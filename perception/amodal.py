@@ -367,7 +367,7 @@ def detection_feature(
         edges=None if sideways or label in EDGES_OWN else box_edges(box, K, cols[idx], smooth),
     )
     if f is not None and up is not None and floor is not None and label in BACKREST_CLASSES:
-        return facing_camera(f, up) if seen_over(reference, up, floor, depth_m, box) else f
+        return facing_camera(f, up) if seen_over(reference, up, floor, depth_m, box, K) else f
     if f is None or up is None or label not in PANEL_DEPTH_M:
         return f
     return FeatureVector(*spanning_box(f.mean, f.cov, box, K, up), f.n, f.label, f.track_id, f.sources)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from perception.amodal import detection_feature
-from perception.backrest import seen_over
+from perception.backrest import NEARER_M, hidden_below, seen_over
 from perception.camera import Intrinsics
 from perception.features import FeatureConfig, depth_points
 from sources.base import ObjectTruth
@@ -44,23 +44,25 @@ def _pose(position: tuple[float, float, float]) -> np.ndarray:
     return pose
 
 
-def _view(objects: list[ObjectTruth], position: tuple[float, float, float]) -> tuple[bool, float, float]:
+def _view(
+    objects: list[ObjectTruth], position: tuple[float, float, float], chair: ObjectTruth = CHAIR
+) -> tuple[bool, float, float]:
     """(whether the chair's view is a backrest seen over something, its completed centre's level distance from
     the chair's true centre with the floor known, and without it)."""
     pose = _pose(position)
     r = _renderer(objects).render(pose)
     depth = np.where(r.depth > 0, r.depth, np.nan).astype(np.float32)
-    v, u = np.nonzero(r.ids == CHAIR.id)
+    v, u = np.nonzero(r.ids == chair.id)
     box = (float(u.min()), float(v.min()), float(u.max() + 1), float(v.max() + 1))
     up = pose[:3, :3].T @ np.array([0.0, 0.0, 1.0])
     floor = -float(pose[2, 3])  # the floor's height along up in the camera frame
-    over = seen_over(depth_points(depth, K, v, u), up, floor, depth, box)
+    over = seen_over(depth_points(depth, K, v, u), up, floor, depth, box, K)
     errors = []
     for known in (floor, None):
         f = detection_feature(depth, K, box, "chair", 0, FeatureConfig(), up, floor=known)
         assert f is not None
         world = pose[:3, :3] @ f.mean + pose[:3, 3]
-        errors.append(float(np.linalg.norm(world[:2] - np.asarray(CHAIR.center[:2]))))
+        errors.append(float(np.linalg.norm(world[:2] - np.asarray(chair.center[:2]))))
     return over, errors[0], errors[1]
 
 
@@ -70,6 +72,36 @@ def test_a_chair_seen_across_its_table_lies_in_front_of_its_backrest(side: float
     assert over
     assert as_box > 0.2  # completed as a box: a chair's depth too far
     assert error < 0.08
+
+
+def test_a_chair_pushed_in_under_its_table_lies_in_front_of_its_backrest() -> None:
+    """Pushed in until its backrest stands 3 cm behind the table's far edge (the table, a solid box, hides its
+    seat): what hides its lower part is only a few centimetres nearer than its backrest."""
+    pushed = ObjectTruth(2, "chair", (4.5, 4.9 - 0.23 + 0.26, 0.45), (0.44, 0.46, 0.9), np.pi)
+    over, error, as_box = _view([TABLE, pushed], (4.5, 2.6, 1.4), pushed)
+    assert over
+    assert as_box > 0.2
+    assert error < 0.08
+
+
+def test_only_what_stands_above_the_floor_under_a_box_hides_it() -> None:
+    """A level camera 1.4 m above the floor; under a box at 5 m, the floor (nearer, as it always is just under a
+    box when the camera looks down) does not hide what the box holds; a table top 0.75 m high, as near, does."""
+    up, floor = np.array([0.0, -1.0, 0.0]), -1.4  # up . p == floor on the floor
+    v = np.arange(H, dtype=float)[:, None] - K.cy
+    box = (200.0, 250.0, 440.0, 400.0)
+    with np.errstate(divide="ignore"):
+        on_floor = np.where(v > 0, 1.4 * K.fy / v, np.nan) * np.ones((1, W))
+        on_table = np.where(v > 0, 0.65 * K.fy / v, np.nan) * np.ones((1, W))
+    assert np.nanmax(on_floor[400:430]) < 5.0 - NEARER_M and np.nanmax(on_table[400:430]) < 5.0 - NEARER_M
+    assert not hidden_below(on_floor.astype(np.float32), K, box, 5.0, up, floor)
+    assert hidden_below(on_table.astype(np.float32), K, box, 5.0, up, floor)
+    assert not hidden_below(on_table.astype(np.float32), K, box, 1.5, up, floor)  # farther than the object
+    # a table's far edge 6-18 cm nearer than the backrest, the wall 8 m away through the gap above it: half the strip
+    gap = on_table.copy()
+    gap[400:411] = 8.0
+    assert hidden_below(gap.astype(np.float32), K, box, 2.05, up, floor)
+    assert np.median(gap[400:422, 260:380]) > 2.05 - 0.1  # the strip's median alone is not 10 cm nearer
 
 
 def test_a_chair_seen_from_behind_or_with_its_seat_in_view_is_completed_as_a_box() -> None:
