@@ -92,11 +92,8 @@ def explains(found: Sequence[Segmented], margin_m: float, standing: Sequence[boo
     held = np.clip(x2 - x1, 0.0, None) * np.clip(y2 - y1, 0.0, None) / area[:, None]  # as ``features.overlap``
     larger = area[None, :] / area[:, None]
     within = (near[None, :] - margin_m <= anchor[:, None]) & (anchor[:, None] <= far[None, :] + margin_m)
-    beyond = anchor[:, None] > anchor[None, :] + BEYOND * margin_m
-    if len(standing):
-        beyond &= np.asarray(standing, bool)[valid][:, None]
-    else:
-        beyond[:] = False
+    stands = np.asarray(standing, bool)[valid] if len(standing) else np.zeros(len(segs), bool)
+    beyond = stands[:, None] & (anchor[:, None] > anchor[None, :] + BEYOND * margin_m)
     maybe = within & (((held < AROUND) & (larger < LARGER)) | beyond)
     np.fill_diagonal(maybe, False)
     for a in np.flatnonzero(maybe.any(1)):
