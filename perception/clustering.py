@@ -52,7 +52,7 @@ class ClusterConfig:
     coincident: float = 1.5
     """Same-class objects whose centres are closer than this many median standard deviations of the smaller
     one's extent are one (``perception.coincident``; its own measure, not ``axis_scale``), and so are objects of
-    two labels the same size and far closer (``coincident.RELABELLED``); 0: never."""
+    two labels the same size (``coincident.SAME_SIZE``); 0: never."""
     split_shared: bool = True
     """Cut a cluster that holds two views of one keyframe in many of its keyframes (``perception.cannot_link``)."""
 

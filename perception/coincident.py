@@ -7,9 +7,10 @@ real objects of one class cannot stand inside each other: when one object's cent
 extent, their clusters are joined, whatever keyframes they share.
 
 A detector also calls one object by two names from frame to frame (a mug a "cup" here and a "bowl" there: on the
-7-Scenes kitchen a "bowl" object stood 1 cm from the "cup" it was, as large). Two objects of different classes do
-stand close (a cup on a book, a plant in a vase), but not with one centre deep inside the other and the same size:
-such a pair (``RELABELLED``, ``SAME_SIZE``) is one object, named by its larger cluster.
+7-Scenes kitchen a "bowl" object stood 1-2.4 cm from the "cup" it was, as large). Two objects of different classes
+do stand close (a cup on a book, a plant in a vase), but not the same size with each centre inside the other's
+reach: side by side, two objects as large as each other stand their width apart, over twice that reach. Such a
+pair (``SAME_SIZE``) is one object, named by its larger cluster.
 
 A large object seen in parts (``footprint.LARGE_CLASSES``: a table whose views each show the part of its top in
 view) can leave its parts in clusters of their own, side by side. One object is detected once in an image, so
@@ -32,10 +33,6 @@ def extent_radius(cov: np.ndarray, stds: float) -> float:
     """An object's typical reach: ``stds`` times its median standard deviation."""
     return stds * float(np.sqrt(np.median(np.clip(np.linalg.eigvalsh(cov), 0.0, None))))
 
-
-RELABELLED = 0.5
-"""Objects of two labels whose centres are closer than this share of the smaller one's reach are one object seen
-under two labels, when they are the same size (``SAME_SIZE``)."""
 
 SAME_SIZE = 1.5
 """Two objects are the same size when their reaches (``extent_radius``) differ by at most this factor."""
@@ -62,8 +59,8 @@ def coincident_groups(
     keyframes: Sequence[set[int]] | None = None,
 ) -> list[list[int]]:
     """Groups of object indices to join: same label, centres closer than the smaller of their reaches
-    (``extent_radius`` of ``stds``); or different labels, centres closer than ``RELABELLED`` of that and reaches
-    within ``SAME_SIZE`` of each other; transitively. With the ``keyframes`` that saw each object, also two of
+    (``extent_radius`` of ``stds``), whatever their labels when their reaches lie within ``SAME_SIZE`` of each
+    other (one object seen under two labels); transitively. With the ``keyframes`` that saw each object, also two of
     one large class (``LARGE_CLASSES``) that ``touching`` and that no keyframe saw in one group. Every index is in
     exactly one group, in order; with ``stds`` 0, each its own."""
     n = len(labels)
@@ -87,7 +84,7 @@ def coincident_groups(
                 if not join and seen is not None and labels[i] in LARGE_CLASSES and ri != rj:
                     join = not seen[ri] & seen[rj] and touching(means[i], covs[i], means[j], covs[j])
             else:
-                join = gap < RELABELLED * reach and max(radius[i], radius[j]) <= SAME_SIZE * reach
+                join = gap < reach and max(radius[i], radius[j]) <= SAME_SIZE * reach
             if join and ri != rj:
                 parent[rj] = ri
                 if seen is not None:

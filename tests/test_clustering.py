@@ -238,8 +238,11 @@ def test_one_object_under_two_labels_is_one_but_a_cup_on_a_book_and_a_plant_in_a
     # the mug seen as a cup and as a bowl, 1 cm apart and as large: one; a cup on a book (5 cm above its centre,
     # far smaller) and a plant above its vase stay two
     assert coincident_groups(labels, means, covs, 1.5) == [[0, 1], [2], [3], [4], [5]]
-    # the same pair 3 cm apart (beyond half its reach) stays two: two objects of two classes side by side
+    # 3 cm apart (inside the reach, 4.2 cm): still one, a cup and a bowl as large cannot stand inside each other;
+    # side by side, 9.6 cm apart (their width), two
     means[1, 0] = 0.03
+    assert coincident_groups(labels, means, covs, 1.5) == [[0, 1], [2], [3], [4], [5]]
+    means[1, 0] = 0.096
     assert coincident_groups(labels, means, covs, 1.5) == [[0], [1], [2], [3], [4], [5]]
 
 
