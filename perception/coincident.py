@@ -58,9 +58,9 @@ def coincident_groups(
     stds: float,
     keyframes: Sequence[set[int]] | None = None,
 ) -> list[list[int]]:
-    """Groups of object indices to join: same label, centres closer than the smaller of their reaches
-    (``extent_radius`` of ``stds``), whatever their labels when their reaches lie within ``SAME_SIZE`` of each
-    other (one object seen under two labels); transitively. With the ``keyframes`` that saw each object, also two of
+    """Groups of object indices to join: centres closer than the smaller of their reaches (``extent_radius`` of
+    ``stds``), of one label, or of two labels with reaches within ``SAME_SIZE`` of each other (one object seen
+    under two labels); transitively. With the ``keyframes`` that saw each object, also two of
     one large class (``LARGE_CLASSES``) that ``touching`` and that no keyframe saw in one group. Every index is in
     exactly one group, in order; with ``stds`` 0, each its own."""
     n = len(labels)
@@ -79,12 +79,10 @@ def coincident_groups(
         for j in range(i + 1, n):
             gap, reach = float(np.linalg.norm(means[i] - means[j])), min(radius[i], radius[j])
             ri, rj = root(i), root(j)
-            if labels[i] == labels[j]:
-                join = gap < reach
-                if not join and seen is not None and labels[i] in LARGE_CLASSES and ri != rj:
-                    join = not seen[ri] & seen[rj] and touching(means[i], covs[i], means[j], covs[j])
-            else:
-                join = gap < reach and max(radius[i], radius[j]) <= SAME_SIZE * reach
+            same = labels[i] == labels[j]
+            join = gap < reach and (same or max(radius[i], radius[j]) <= SAME_SIZE * reach)
+            if not join and same and seen is not None and labels[i] in LARGE_CLASSES and ri != rj:
+                join = not seen[ri] & seen[rj] and touching(means[i], covs[i], means[j], covs[j])
             if join and ri != rj:
                 parent[rj] = ri
                 if seen is not None:
