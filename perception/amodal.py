@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import distance_transform_edt, uniform_filter
 
-from perception.backrest import BACKREST_CLASSES, facing_camera, seen_over
+from perception.backrest import BACKREST_CLASSES, facing_camera, seated, seen_over
 from perception.camera import Intrinsics, pixels_to_points
 from perception.features import (
     PANEL_DEPTH_M,
@@ -367,7 +367,9 @@ def detection_feature(
         edges=None if sideways or label in EDGES_OWN else box_edges(box, K, cols[idx], smooth),
     )
     if f is not None and up is not None and floor is not None and label in BACKREST_CLASSES:
-        return facing_camera(f, up) if seen_over(reference, up, floor, depth_m, box, K) else f
+        if seen_over(reference, up, floor, depth_m, box, K):
+            return facing_camera(f, up)
+        return (None if sideways else seated(f, reference, up, floor)) or f
     if f is None or up is None or label not in PANEL_DEPTH_M:
         return f
     return FeatureVector(*spanning_box(f.mean, f.cov, box, K, up), f.n, f.label, f.track_id, f.sources)

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from perception.amodal import detection_feature
-from perception.backrest import NEARER_M, hidden_below, seen_over
+from perception.backrest import NEARER_M, hidden_below, seated, seen_over
 from perception.camera import Intrinsics
-from perception.features import FeatureConfig, depth_points
+from perception.features import FeatureConfig, FeatureVector, depth_points
 from sources.base import ObjectTruth
 from sources.family_render import chair_parts
 from sources.raycast import Renderer, box_surfaces, object_texture, room_surfaces, surface_texture
@@ -127,3 +127,56 @@ def test_a_rendered_chair_fills_its_box_to_every_face_with_its_backrest_at_its_b
     np.testing.assert_allclose(np.max(highs, axis=0), half, atol=1e-9)
     back = max(range(len(parts)), key=lambda k: parts[k].size[2])  # the tallest part: the backrest
     assert highs[back][1] < -0.15 and highs[back][2] == pytest.approx(0.45)  # at -y (the chair faces +y), on top
+
+
+def _looking_at(position: tuple[float, float, float], target: tuple[float, float, float]) -> np.ndarray:
+    d = np.asarray(target) - np.asarray(position)
+    pose = np.eye(4)
+    yaw, pitch = np.arctan2(d[1], d[0]), np.arctan2(d[2], np.hypot(d[0], d[1]))
+    pose[:3, :3] = look_rotation(np.array([yaw]), np.array([pitch]), np.zeros(1))[0]
+    pose[:3, 3] = position
+    return pose
+
+
+@pytest.mark.parametrize(
+    ("position", "target"), [((4.5, 4.7, 1.5), (4.5, 5.45, 0.8)), ((4.5, 4.6, 1.6), (4.5, 5.5, 0.85))]
+)
+def test_a_chair_whose_seat_front_the_image_cuts_lies_in_front_of_its_backrest(
+    position: tuple[float, float, float], target: tuple[float, float, float]
+) -> None:
+    """Seen from its front and from above, close: the image's bottom edge cuts the seat's front, so the nearest
+    points it shows are the seat's back half. Completed as a box, the chair lies a fifth of a metre beyond its
+    centre; placed by its backrest and seat (``seated``), within 3 cm."""
+    pose = _looking_at(position, target)
+    r = _renderer([CHAIR]).render(pose)
+    depth = np.where(r.depth > 0, r.depth, np.nan).astype(np.float32)
+    v, u = np.nonzero(r.ids == CHAIR.id)
+    box = (float(u.min()), float(v.min()), float(u.max() + 1), float(v.max() + 1))
+    assert box[3] == H  # cut by the image's bottom
+    up = pose[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    errors = []
+    for floor in (-float(pose[2, 3]), None):
+        f = detection_feature(depth, K, box, "chair", 0, FeatureConfig(), up, floor=floor)
+        assert f is not None
+        world = pose[:3, :3] @ f.mean + pose[:3, 3]
+        errors.append(float(np.linalg.norm(world[:2] - np.asarray(CHAIR.center[:2]))))
+    assert errors[1] > 0.15
+    assert errors[0] < 0.03
+
+
+def test_seated_needs_a_backrest_plate_and_a_seat_to_one_side() -> None:
+    """A view of a backrest alone, or of a box (no plate), is left to the completion."""
+    up, floor = np.array([0.0, -1.0, 0.0]), -1.4
+    rng = np.random.default_rng(3)
+    f = FeatureVector(np.array([0.0, 0.95, 3.3]), np.eye(3) * 0.01, 100, "chair")
+    plate = np.column_stack(
+        [rng.uniform(-0.22, 0.22, 400), -rng.uniform(0.0, 0.9, 400) + 1.4, 3.2 + rng.normal(0, 0.005, 400)]
+    )
+    assert seated(f, plate, up, floor) is None  # a backrest alone: no seat
+    seat = np.column_stack([rng.uniform(-0.22, 0.22, 400), np.full(400, 1.4 - 0.45), rng.uniform(2.8, 3.2, 400)])
+    moved = seated(f, np.vstack([plate, seat]), up, floor)  # the completion lies beyond the backrest
+    assert moved is not None and moved.mean[2] == pytest.approx(3.2 - (0.44 - 0.05) / 2.0, abs=0.02)
+    block = np.column_stack(
+        [rng.uniform(-0.22, 0.22, 800), -rng.uniform(0.0, 0.9, 800) + 1.4, rng.uniform(2.8, 3.2, 800)]
+    )
+    assert seated(f, block, up, floor) is None  # solid: no plate
