@@ -7,7 +7,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from perception.anchoring import PixelCounts, anchored_on, anchored_segments
-from perception.features import FeatureConfig, depth_segment, in_box, in_front, object_pixels
+from perception.features import LARGER, FeatureConfig, depth_segment, in_box, in_front, object_pixels, overlap
 
 
 def _wall(z: float = 4.0, shape: tuple[int, int] = (60, 80)) -> np.ndarray:
@@ -165,3 +165,23 @@ def test_pixel_counts_in_a_box_equal_the_pixels_in_box_finds(origin, step, shape
     pick = rng.integers(0, gr.size, size=rng.integers(1, gr.size + 3))
     rows, cols = origin[0] + step * gr.ravel()[pick], origin[1] + step * gc.ravel()[pick]
     assert PixelCounts(rows, cols).inside(np.array([box]))[0] == int(in_box(rows, cols, box).sum())
+
+
+def test_a_plant_behind_a_tables_corner_keeps_only_its_own_pixels() -> None:
+    """A table top receding from 1.8 to 3.1 m, its box far larger than that of a potted plant 3.12-3.3 m away
+    behind its far corner; the corner lies in the plant's box and joins its depth segment. The plant is anchored beyond
+    the far end of the table's segment, where nothing standing on the table is: the corner's pixels leave. Not
+    being floor-standing does not keep them (``in_front``)."""
+    depth = np.full((60, 80), 4.0, np.float32)
+    depth[25:60, 0:70] = np.linspace(1.8, 3.1, 70)[None, :]  # the table top, receding to its right
+    depth[5:40, 70:78] = np.linspace(3.12, 3.3, 8)[None, :]  # the plant behind the corner, seen at a slant
+    table, plant = (0.0, 25.0, 70.0, 60.0), (64.0, 5.0, 78.0, 40.0)
+    cfg = FeatureConfig()
+    own = depth_segment(depth, table, cfg, "dining table")[2]
+    rows, cols, mine = depth_segment(depth, plant, cfg, "potted plant")
+    assert own is not None and mine is not None
+    z = depth[rows, cols]
+    assert overlap(plant, table)[1] > LARGER  # the table's box is far larger
+    assert z.min() < 3.05 and mine.anchor > own.far + cfg.gap_m  # the corner joined; the plant beyond the table
+    out = in_front(z, rows, cols, mine, [own], cfg.gap_m)
+    assert np.all(cols[out] < 70) and np.all(cols[~out] >= 70) and out.any()
