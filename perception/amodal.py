@@ -369,7 +369,8 @@ def detection_feature(
     if f is not None and up is not None and floor is not None and label in BACKREST_CLASSES:
         if seen_over(reference, up, floor, depth_m, box, K):
             return facing_camera(f, up)
-        return (None if sideways else seated(f, reference, up, floor)) or f
+        moved = None if sideways else seated(f, reference, up, floor)  # the image's side cuts the plate's width
+        return moved if moved is not None else f
     if f is None or up is None or label not in PANEL_DEPTH_M:
         return f
     return FeatureVector(*spanning_box(f.mean, f.cov, box, K, up), f.n, f.label, f.track_id, f.sources)

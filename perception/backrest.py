@@ -26,10 +26,10 @@ Its centre then lies half its depth in front of the backrest's back (``facing_ca
 
 A chair whose view shows both its backrest and its seat is placed by them (``seated``): the backrest is a thin
 upright plate at its back, the seat lies on one side of it, and the chair's centre lies half its depth from the
-plate on that side, whatever the view's nearest points are: a view completed nearer the plate than that (or
-beyond it) is moved out to it. Seen from the front and from above, the image's
-bottom edge cuts the seat's front (or a table leg joins the view), and completed as a box, the 7-Scenes chair at
-the left end of the table lay 0.24 m beyond its centre along the ray in the views from its front.
+plate on that side, whatever the view's nearest points are. A view completed less than half that from the plate
+(or beyond it) took the wrong side and is moved out to it. Seen from its front and from above, with the image's
+bottom edge cutting its seat's front, the 7-Scenes chair at the left end of the table, completed as a box, lay
+0.24 m beyond its centre along the ray.
 
 Pure computation, no I/O.
 """
