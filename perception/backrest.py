@@ -40,6 +40,7 @@ import numpy as np
 
 from perception.camera import Intrinsics, pixels_to_points
 from perception.features import Box, FeatureVector
+from perception.footprint import level_basis
 
 BACKREST_CLASSES: frozenset[str] = frozenset({"chair"})
 """Classes whose upper part is a backrest standing at their back."""
@@ -158,7 +159,7 @@ def seated(f: FeatureVector, points: np.ndarray, up: np.ndarray, floor: float) -
     seat = points[(heights >= SEAT_BAND[0] * top) & (heights <= SEAT_BAND[1] * top)]
     if len(back) < MIN_POINTS or len(seat) < MIN_POINTS:
         return None
-    level = np.linalg.svd(np.eye(3) - np.outer(up, up))[0][:, :2]  # two level axes
+    level = level_basis(up)
     origin = np.median(back, axis=0)
     flat = (back - origin) @ level
     across, plate = _thinnest(flat)

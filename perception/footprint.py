@@ -85,12 +85,17 @@ def shares_of(label: str) -> tuple[float, float]:
     return PANEL_SHARES if label in PANEL_DEPTH_M else UNION_SHARES
 
 
-def horizontal_axes(cov: np.ndarray, up: np.ndarray) -> np.ndarray:
-    """The principal axes (2, 3) of ``cov`` across the unit vector ``up``, the wider first."""
+def level_basis(up: np.ndarray) -> np.ndarray:
+    """Two orthonormal axes (3, 2) across the unit vector ``up``."""
     helper = np.eye(3)[int(np.argmin(np.abs(up)))]
     e1 = np.cross(up, helper)
     e1 /= np.linalg.norm(e1)
-    basis = np.stack([e1, np.cross(up, e1)], axis=1)  # (3, 2)
+    return np.stack([e1, np.cross(up, e1)], axis=1)
+
+
+def horizontal_axes(cov: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """The principal axes (2, 3) of ``cov`` across the unit vector ``up``, the wider first."""
+    basis = level_basis(up)
     _, vecs = np.linalg.eigh(basis.T @ cov @ basis)
     return (basis @ vecs[:, ::-1]).T
 
