@@ -35,8 +35,8 @@ def _renderer(objects: list[ObjectTruth]) -> Renderer:
     return Renderer(out, K, W, H)
 
 
-def _pose(position: tuple[float, float, float]) -> np.ndarray:
-    d = np.asarray(CHAIR.center) - np.asarray(position)
+def _pose(position: tuple[float, float, float], target: tuple[float, float, float] = CHAIR.center) -> np.ndarray:
+    d = np.asarray(target) - np.asarray(position)
     pose = np.eye(4)
     yaw, pitch = np.arctan2(d[1], d[0]), np.arctan2(d[2], np.hypot(d[0], d[1]))
     pose[:3, :3] = look_rotation(np.array([yaw]), np.array([pitch]), np.zeros(1))[0]
@@ -129,15 +129,6 @@ def test_a_rendered_chair_fills_its_box_to_every_face_with_its_backrest_at_its_b
     assert highs[back][1] < -0.15 and highs[back][2] == pytest.approx(0.45)  # at -y (the chair faces +y), on top
 
 
-def _looking_at(position: tuple[float, float, float], target: tuple[float, float, float]) -> np.ndarray:
-    d = np.asarray(target) - np.asarray(position)
-    pose = np.eye(4)
-    yaw, pitch = np.arctan2(d[1], d[0]), np.arctan2(d[2], np.hypot(d[0], d[1]))
-    pose[:3, :3] = look_rotation(np.array([yaw]), np.array([pitch]), np.zeros(1))[0]
-    pose[:3, 3] = position
-    return pose
-
-
 @pytest.mark.parametrize(
     ("position", "target"), [((4.5, 4.7, 1.5), (4.5, 5.45, 0.8)), ((4.5, 4.6, 1.6), (4.5, 5.5, 0.85))]
 )
@@ -147,7 +138,7 @@ def test_a_chair_whose_seat_front_the_image_cuts_lies_in_front_of_its_backrest(
     """Seen from its front and from above, close: the image's bottom edge cuts the seat's front, so the nearest
     points it shows are the seat's back half. Completed as a box, the chair lies a fifth of a metre beyond its
     centre; placed by its backrest and seat (``seated``), within 3 cm."""
-    pose = _looking_at(position, target)
+    pose = _pose(position, target)
     r = _renderer([CHAIR]).render(pose)
     depth = np.where(r.depth > 0, r.depth, np.nan).astype(np.float32)
     v, u = np.nonzero(r.ids == CHAIR.id)
