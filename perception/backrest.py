@@ -22,6 +22,13 @@ A chair's view is taken as its backrest seen from the front (``seen_over``) when
   strip's median missed; the floor, always nearer just under a box when the camera looks down, is what the height
   test leaves out.
 
+Or when its lowest point lies above ``SEAT_TOP`` of its top and the strip under its box shows the chair's own
+seat reaching out in front of its backrest (``seat_below``). The detector's box may hold the backrest alone, the
+seat in view just under it: the 7-Scenes chair at the left end of the table in frames 48-68, seen from its
+front-left (the seat at a seat's height in 52-93 % of the strip, 5 cm or more in front of the backrest; 0 % under
+the other chairs' boxes). Its backrest's views, completed as a box, lay 0.2-0.3 m beyond it and made a second
+chair. Seen from behind, the strip under a backrest shows its lower edge, the legs and what lies beyond.
+
 Its centre then lies half its depth in front of the backrest's back (``facing_camera``).
 
 A chair whose view shows both its backrest and its seat is placed by them (``seated``): the backrest is a thin
@@ -48,6 +55,10 @@ BACKREST_CLASSES: frozenset[str] = frozenset({"chair"})
 BACK_ONLY = 0.55
 """A view shows its backrest only when its lowest point lies above this share of its top's height over the
 floor (a chair's seat lies at about half its height)."""
+
+SEAT_TOP = 0.5
+"""A view whose lowest point lies above this share of its top's height over the floor holds no seat, whose top
+lies at about half a chair's height (``seat_below``: the seat may show under its box)."""
 
 NEARER_M = 0.02
 """Under the box, what lies this much nearer than the view's nearest points (and ``RAISED_M`` above the floor)
@@ -100,35 +111,70 @@ depth (``seated``) is a rough one; applied to every view nearer than the whole h
 whole 1-5 cm towards their front (development seeds 0-35: the scenes' median error 0.029 -> 0.037 m)."""
 
 
+def _under(depth_m: np.ndarray, K: Intrinsics, box: Box, whole: bool = False) -> np.ndarray | None:
+    """The camera-frame points of the strip of the image under ``box`` (its middle half across): None when the box
+    reaches the image's bottom (with ``whole``, when the image's bottom cuts the strip) or the strip has too few
+    pixels with depth (``VALID_SHARE``)."""
+    h, w = depth_m.shape[:2]
+    x1, y1, x2, y2 = box
+    top = int(np.ceil(y2))
+    rows = max(STRIP_PX, round(STRIP_SHARE * (y2 - y1)))
+    bottom = min(h, top + rows)
+    left, right = max(int(x1 + 0.25 * (x2 - x1)), 0), min(int(np.ceil(x2 - 0.25 * (x2 - x1))), w)
+    if top >= h or right <= left or (whole and bottom - top < rows):
+        return None
+    rows, cols = np.mgrid[top:bottom, left:right]
+    z = depth_m[rows, cols].astype(np.float64)
+    valid = np.isfinite(z) & (z > 0)
+    if valid.sum() < VALID_SHARE * z.size or not valid.any():
+        return None
+    return pixels_to_points(cols[valid].astype(float), rows[valid].astype(float), z[valid], K)
+
+
 def hidden_below(depth_m: np.ndarray, K: Intrinsics, box: Box, nearest_z: float, up: np.ndarray, floor: float) -> bool:
     """Whether the strip of the image under ``box`` (its middle half across) shows something ``NEARER_M`` nearer
     (camera z) than ``nearest_z`` and ``RAISED_M`` above the floor (``up``, ``floor``: camera frame): something in
     front hides the object's lower part. False when the box reaches the image's bottom or the strip has too few
     pixels with depth."""
-    h, w = depth_m.shape[:2]
-    x1, y1, x2, y2 = box
-    top = int(np.ceil(y2))
-    bottom = min(h, top + max(STRIP_PX, round(STRIP_SHARE * (y2 - y1))))
-    left, right = max(int(x1 + 0.25 * (x2 - x1)), 0), min(int(np.ceil(x2 - 0.25 * (x2 - x1))), w)
-    if top >= h or right <= left:
+    points = _under(depth_m, K, box)
+    if points is None:
         return False
-    rows, cols = np.mgrid[top:bottom, left:right]
-    z = depth_m[rows, cols].astype(np.float64)
-    valid = np.isfinite(z) & (z > 0)
-    if valid.sum() < VALID_SHARE * z.size or not valid.any():
-        return False
-    points = pixels_to_points(cols[valid].astype(float), rows[valid].astype(float), z[valid], K)
     hiding = (points[:, 2] < nearest_z - NEARER_M) & (points @ up - floor > RAISED_M)
     return float(hiding.mean()) >= HIDING_SHARE
 
 
-def seen_over(points: np.ndarray, up: np.ndarray, floor: float, depth_m: np.ndarray, box: Box, K: Intrinsics) -> bool:
-    """Whether a view's camera-frame ``points`` are a backrest seen from the front over something nearer
-    (module docstring); ``floor``: the floor's height along the camera-frame ``up`` (up . p == floor)."""
-    low, high = (float(v) - floor for v in np.percentile(points @ up, [2, 98]))
-    if high <= 0.0 or low < BACK_ONLY * high:
+def seat_below(depth_m: np.ndarray, K: Intrinsics, box: Box, points: np.ndarray, up: np.ndarray, floor: float) -> bool:
+    """Whether the strip of the image under the box of a backrest's view (camera-frame ``points``) shows the
+    chair's seat in front of the backrest, reaching out from it: of the strip's points at a seat's height
+    (``SEAT_BAND`` of the view's top), a ``HIDING_SHARE`` of the strip lie ``NEARER_M`` nearer than the backrest's
+    median, and the nearest to it within ``SEAT_M``. Distances are level (camera z grows downwards at one
+    distance when the camera looks down). Seen from behind, the strip under a backrest shows its own lower edge,
+    the seat's back edge and the legs, as far as the backrest, or what lies beyond it; under a box that holds the
+    seat, the seat's front edge, well in front of the backrest. Not judged on a strip the image's bottom cuts."""
+    strip = _under(depth_m, K, box, whole=True)
+    top = float(np.percentile(points @ up - floor, 98))
+    if strip is None or top <= 0.0:
         return False
-    return hidden_below(depth_m, K, box, float(np.percentile(points[:, 2], 2)), up, floor)
+    height = strip @ up - floor
+    seat_high = (height >= SEAT_BAND[0] * top) & (height <= SEAT_BAND[1] * top)
+    if not seat_high.any():
+        return False
+    back = float(np.median(np.linalg.norm(points - np.outer(points @ up, up), axis=1)))
+    before = back - np.linalg.norm(strip - np.outer(strip @ up, up), axis=1)  # how far in front of the backrest
+    reaching = float(np.percentile(before[seat_high], 5)) < SEAT_M
+    return reaching and float((seat_high & (before > NEARER_M)).mean()) >= HIDING_SHARE
+
+
+def seen_over(points: np.ndarray, up: np.ndarray, floor: float, depth_m: np.ndarray, box: Box, K: Intrinsics) -> bool:
+    """Whether a view's camera-frame ``points`` are a backrest seen from the front over something nearer, or with
+    its seat under its box (module docstring); ``floor``: the floor's height along the camera-frame ``up``
+    (up . p == floor)."""
+    low, high = (float(v) - floor for v in np.percentile(points @ up, [2, 98]))
+    if high <= 0.0 or low < SEAT_TOP * high:
+        return False
+    if low >= BACK_ONLY * high and hidden_below(depth_m, K, box, float(np.percentile(points[:, 2], 2)), up, floor):
+        return True
+    return seat_below(depth_m, K, box, points, up, floor)
 
 
 def facing_camera(f: FeatureVector, up: np.ndarray) -> FeatureVector:

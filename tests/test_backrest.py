@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from perception.amodal import detection_feature
-from perception.backrest import NEARER_M, hidden_below, seated, seen_over
+from perception.backrest import NEARER_M, hidden_below, seat_below, seated, seen_over
 from perception.camera import Intrinsics
 from perception.features import FeatureConfig, FeatureVector, depth_points
 from sources.base import ObjectTruth
@@ -171,3 +171,37 @@ def test_seated_needs_a_backrest_plate_and_a_seat_to_one_side() -> None:
         [rng.uniform(-0.22, 0.22, 800), -rng.uniform(0.0, 0.9, 800) + 1.4, rng.uniform(2.8, 3.2, 800)]
     )
     assert seated(f, block, up, floor) is None  # solid: no plate
+
+
+@pytest.mark.parametrize(
+    ("position", "front"), [((4.5, 2.6, 1.4), True), ((4.9, 3.2, 1.5), True), ((4.5, 7.4, 1.4), False)]
+)
+def test_a_box_holding_a_backrest_alone_looks_under_it_for_the_seat(
+    position: tuple[float, float, float], front: bool
+) -> None:
+    """The detector's box holds a chair's backrest alone (the pixels of its instance mask more than 0.47 m above
+    the floor), the rest of the chair in view under it. Seen from the front, its seat shows under the box, in front
+    of the backrest (``seat_below``): the chair lies in front of its backrest, where a box's completion puts it a
+    chair's depth too far. Seen from behind, what shows under the box lies beyond the backrest: a box it is."""
+    pose = _pose(position)
+    r = _renderer([CHAIR]).render(pose)
+    depth = np.where(r.depth > 0, r.depth, np.nan).astype(np.float32)
+    v, u = np.nonzero(r.ids == CHAIR.id)
+    high = (depth_points(depth, K, v, u) @ pose[:3, :3].T + pose[:3, 3])[:, 2] > 0.47
+    v, u = v[high], u[high]
+    box = (float(u.min()), float(v.min()), float(u.max() + 1), float(v.max() + 1))
+    up = pose[:3, :3].T @ np.array([0.0, 0.0, 1.0])
+    floor = -float(pose[2, 3])
+    points = depth_points(depth, K, v, u)
+    assert seat_below(depth, K, box, points, up, floor) == front
+    assert not hidden_below(depth, K, box, float(np.percentile(points[:, 2], 2)), up, floor)  # nothing nearer
+    errors = []
+    for known in (floor, None):
+        f = detection_feature(depth, K, box, "chair", 0, FeatureConfig(), up, floor=known)
+        assert f is not None
+        world = pose[:3, :3] @ f.mean + pose[:3, 3]
+        errors.append(float(np.linalg.norm(world[:2] - np.asarray(CHAIR.center[:2]))))
+    if front:
+        assert errors[1] > 0.2 and errors[0] < 0.08
+    else:
+        assert errors[0] == errors[1] < 0.1
