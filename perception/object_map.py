@@ -153,8 +153,8 @@ class ObjectMapper:
         h, w = depth_m.shape[:2]
         whole = [not any(cut_by_border(d.box, w, h)) for d in detections]
         plane = level_plane(depth_m, K, self.floor_config)
-        up, floor = self._camera_up(pose, plane), self.floor
-        ground = None if floor is None else floor.height - float(floor.up @ np.asarray(pose)[:3, 3])  # camera frame
+        up = self._camera_up(pose, plane)
+        ground = self._ground(pose, plane)
         found = anchored_segments(depth_m, [(d.box, d.label) for d in detections], self.features)
         segments = [f[2] for f in found]
         occluders = [[s for s in segments if s is not None and s is not mine] for mine in segments]
@@ -205,6 +205,15 @@ class ObjectMapper:
         if floor is not None:
             return np.asarray(pose)[:3, :3].T @ floor.up
         return None if plane is None else plane[:3] / np.linalg.norm(plane[:3])
+
+    def _ground(self, pose: np.ndarray, plane: np.ndarray | None) -> float | None:
+        """The floor's height along ``_camera_up`` in the camera frame of ``pose``: the floor's, else (before the
+        keyframes agree on one) this keyframe's level plane's, else None. On 7-Scenes the floor is agreed from the
+        seventh keyframe on; the chair views of the first six were completed without it (``perception.backrest``)."""
+        floor = self.floor
+        if floor is not None:
+            return floor.height - float(floor.up @ np.asarray(pose)[:3, 3])
+        return None if plane is None else float(-plane[3] / np.linalg.norm(plane[:3]))
 
     @property
     def floor(self) -> Floor | None:

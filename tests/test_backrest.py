@@ -13,6 +13,8 @@ from perception.amodal import detection_feature
 from perception.backrest import NEARER_M, hidden_below, seat_below, seated, seen_over
 from perception.camera import Intrinsics
 from perception.features import FeatureConfig, FeatureVector, depth_points
+from perception.frame import Detection
+from perception.object_map import ObjectMapper
 from sources.base import ObjectTruth
 from sources.family_render import chair_parts
 from sources.raycast import Renderer, box_surfaces, object_texture, room_surfaces, surface_texture
@@ -205,3 +207,21 @@ def test_a_box_holding_a_backrest_alone_looks_under_it_for_the_seat(
         assert errors[1] > 0.2 and errors[0] < 0.08
     else:
         assert errors[0] == errors[1] < 0.1
+
+
+def test_the_first_keyframes_place_a_chair_before_the_floor_is_agreed() -> None:
+    """The floor needs several keyframes to agree on it (``FloorConfig.min_keyframes``); until then a keyframe's
+    own level plane gives the backrest rules their floor (``ObjectMapper``): a chair seen across its table in the
+    first keyframe lies in front of its backrest, not a chair's depth beyond it."""
+    pose = _pose((4.5, 2.6, 1.4))
+    r = _renderer([TABLE, CHAIR]).render(pose)
+    depth = np.where(r.depth > 0, r.depth, np.nan).astype(np.float32)
+    v, u = np.nonzero(r.ids == CHAIR.id)
+    box = (float(u.min()), float(v.min()), float(u.max() + 1), float(v.max() + 1))
+    mapper = ObjectMapper()
+    mapper.add_keyframe(0, [Detection("chair", 0.9, box)], depth, K, pose)
+    assert mapper.floor is None
+    keyframe, view = mapper.observation(0)
+    world = pose[:3, :3] @ view.mean + pose[:3, 3]
+    assert keyframe == 0
+    assert np.linalg.norm(world[:2] - np.asarray(CHAIR.center[:2])) < 0.08
