@@ -118,10 +118,10 @@ def _under(depth_m: np.ndarray, K: Intrinsics, box: Box, whole: bool = False) ->
     h, w = depth_m.shape[:2]
     x1, y1, x2, y2 = box
     top = int(np.ceil(y2))
-    rows = max(STRIP_PX, round(STRIP_SHARE * (y2 - y1)))
-    bottom = min(h, top + rows)
+    tall = max(STRIP_PX, round(STRIP_SHARE * (y2 - y1)))
+    bottom = min(h, top + tall)
     left, right = max(int(x1 + 0.25 * (x2 - x1)), 0), min(int(np.ceil(x2 - 0.25 * (x2 - x1))), w)
-    if top >= h or right <= left or (whole and bottom - top < rows):
+    if top >= h or right <= left or (whole and bottom - top < tall):
         return None
     rows, cols = np.mgrid[top:bottom, left:right]
     z = depth_m[rows, cols].astype(np.float64)
@@ -147,7 +147,7 @@ def seat_below(depth_m: np.ndarray, K: Intrinsics, box: Box, points: np.ndarray,
     """Whether the strip of the image under the box of a backrest's view (camera-frame ``points``) shows the
     chair's seat in front of the backrest, reaching out from it: of the strip's points at a seat's height
     (``SEAT_BAND`` of the view's top), a ``HIDING_SHARE`` of the strip lie ``NEARER_M`` nearer than the backrest's
-    median, and the nearest to it within ``SEAT_M``. Distances are level (camera z grows downwards at one
+    median, and the nearest 5 % of them within ``SEAT_M`` of it. Distances are level (camera z grows downwards at one
     distance when the camera looks down). Seen from behind, the strip under a backrest shows its own lower edge,
     the seat's back edge and the legs, as far as the backrest, or what lies beyond it; under a box that holds the
     seat, the seat's front edge, well in front of the backrest. Not judged on a strip the image's bottom cuts."""
