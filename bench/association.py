@@ -135,6 +135,7 @@ def ablation_configs(base: NPDAConfig) -> dict[str, NPDAConfig]:
     out |= {f"alpha {a}": replace(base, alpha=a) for a in (0.01, 0.05, 0.10, 0.20) if a != base.alpha}
     out["no class gate"] = replace(base, class_gate=False)
     out["per-column argmax (Algorithm 1)"] = replace(base, one_to_one=False)
+    out["one-to-one on A alone (Hungarian on -A)"] = replace(base, rank_by="score")
     out["no box gate"] = replace(base, min_iou=0.0)
     out["box gate IoU 0.4"] = replace(base, min_iou=0.4)
     out["box gate intersection / smaller box >= 0.3"] = replace(base, overlap="iomin", min_iou=0.3)

@@ -4,8 +4,12 @@ Detections of the previous keyframe (rows l) and the current one (columns k) are
 Mann-Whitney U test on their boxes' depth samples. The association score A(l, k) is the two-sided
 p-value of U under the normal approximation with tie correction (eqs. 2.11-2.13): the pair is compatible
 at confidence c when U lies in [E(U) - z_c sqrt(Var U), 1 + E(U) + z_c sqrt(Var U)], so A = 1 - the
-smallest such c. Pairs with A >= alpha are candidates; the assignment is one-to-one (Hungarian on -A)
-or, as in Algorithm 1 line 16, the per-column argmax.
+smallest such c. Pairs with A >= alpha are candidates; the assignment is one-to-one or, as in Algorithm 1
+line 16, the per-column argmax. One-to-one, it maximises how much each previous box, moved into the current
+image, overlaps its current box (``NPDAConfig.rank_by``), A breaking ties: same-class objects side by side (a
+row of chairs) have depths alike, so A ranks them by chance. Hungarian on -A, as the thesis does, joined
+neighbouring chairs in one track in 12 % of the chairs' associations on development seeds 7, 15 and 23 (true
+poses; 187 of 1604); ranked by overlap, in 1 % (21 of 1610).
 """
 
 from __future__ import annotations
@@ -13,7 +17,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import cast
+from typing import Literal, cast
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -46,7 +50,11 @@ class NPDAConfig:
     class_gate: bool = True
     """Only detections with the same class label can be associated."""
     one_to_one: bool = True
-    """Hungarian assignment on -A; False = per-column argmax as in Algorithm 1 (one previous may match many)."""
+    """Hungarian assignment; False = per-column argmax of A as in Algorithm 1 (one previous may match many)."""
+    rank_by: Literal["overlap", "score"] = "overlap"
+    """What the one-to-one assignment maximises over the candidates (A >= alpha): "overlap", the moved previous
+    box's overlap with the current box (``overlap``), A breaking ties (module docstring); "score", A (the
+    thesis's Hungarian on -A)."""
     min_iou: float = 0.2
     """Box gate: overlap of the previous box moved into the current image with the current box; 0 disables it."""
     overlap: str = "iou"
@@ -207,12 +215,22 @@ def association_matrix(
     return np.where(valid, score, 0.0).reshape(len(prev_dets), len(cur_dets))
 
 
-def assign(scores: np.ndarray, config: NPDAConfig) -> list[tuple[int, int]]:
-    """Matched (previous, current) pairs with A >= alpha: Hungarian on -A, or per-column argmax (Algorithm 1)."""
+TIE_WEIGHT = 1e-3
+"""A's weight beside the boxes' overlap (at most 1) in the assignment ranked by overlap: a tie-break."""
+
+
+def assign(scores: np.ndarray, config: NPDAConfig, overlaps: np.ndarray | None = None) -> list[tuple[int, int]]:
+    """Matched (previous, current) pairs with A >= alpha: one-to-one (Hungarian) maximising the moved previous
+    boxes' ``overlaps`` with the current ones (L, K) when given and ``config.rank_by`` is "overlap", else A; or
+    per-column argmax of A (Algorithm 1)."""
     if scores.size == 0:
         return []
     if config.one_to_one:
-        rows, cols = linear_sum_assignment(-scores)
+        if overlaps is not None and config.rank_by == "overlap":
+            candidate = (scores >= config.alpha) & (scores > 0)
+            rows, cols = linear_sum_assignment(-np.where(candidate, overlaps + TIE_WEIGHT * scores, 0.0))
+        else:
+            rows, cols = linear_sum_assignment(-scores)
     else:
         cols = np.arange(scores.shape[1])
         rows = np.argmax(scores, axis=0)
@@ -254,7 +272,8 @@ def associate(
     if warped and config.out_of_view_gap_m is not None:
         for row, values in out_of_view_scores(labels, moved_points, cur_dets, measured_cur_depth, K, config).items():
             scores[row] = np.maximum(scores[row], values)  # the warped test where it could run
-    return Association(assign(scores, config), scores, warped)
+    overlaps = None if moved is None else box_iou(moved, [d.box for d in cur_dets], config.overlap)
+    return Association(assign(scores, config, overlaps), scores, warped)
 
 
 def _extent(points: np.ndarray) -> np.ndarray:

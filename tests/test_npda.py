@@ -98,6 +98,26 @@ def test_one_to_one_assignment_vs_per_column_argmax() -> None:
     assert sorted(assign(scores, NPDAConfig(alpha=0.1, one_to_one=False))) == [(0, 0), (0, 1)]
 
 
+def test_one_to_one_assignment_follows_the_moved_boxes_where_depths_cannot_tell_a_row_apart() -> None:
+    """Three chairs in a row at one depth: A ranks the neighbours higher by chance; the previous boxes, moved
+    into the current image, overlap their own chairs' boxes most."""
+    scores = np.array([[0.40, 0.90, 0.00], [0.85, 0.50, 0.95], [0.00, 0.90, 0.30]])
+    overlaps = np.array([[0.70, 0.25, 0.00], [0.22, 0.75, 0.21], [0.00, 0.24, 0.65]])
+    config = NPDAConfig(alpha=0.1)
+    assert config.rank_by == "overlap"
+    assert sorted(assign(scores, config, overlaps)) == [(0, 0), (1, 1), (2, 2)]
+    by_score = sorted(assign(scores, replace(config, rank_by="score"), overlaps))
+    assert by_score == [(0, 1), (1, 0), (2, 2)] or by_score == [(0, 0), (1, 2), (2, 1)]
+    assert sorted(assign(scores, config)) == by_score  # no moved boxes: A alone
+
+
+def test_assignment_by_overlap_keeps_alpha_and_lets_a_break_ties() -> None:
+    scores = np.array([[0.05, 0.60], [0.50, 0.20]])
+    overlaps = np.array([[0.90, 0.00], [0.00, 0.00]])  # row 1's box left the image: no overlap anywhere
+    pairs = sorted(assign(scores, NPDAConfig(alpha=0.1), overlaps))
+    assert pairs == [(0, 1), (1, 0)]  # (0, 0) overlaps most but fails alpha; row 1 goes by A
+
+
 def test_assignment_drops_pairs_below_alpha() -> None:
     scores = np.array([[0.04, 0.0], [0.0, 0.3]])
     assert assign(scores, NPDAConfig(alpha=0.05)) == [(1, 1)]
