@@ -272,12 +272,31 @@ def _seeds(text: str) -> list[int]:
 
 @bench_app.command("association")
 def bench_association(
-    seeds: SeedsOpt = "0,1,2", frames: Annotated[int, typer.Option("--frames")] = 300, write: WriteOpt = None
+    seeds: Annotated[
+        str | None,
+        typer.Option("--seeds", help="synthetic seeds, comma separated (default 0,1,2; --family: the held-out seeds)"),
+    ] = None,
+    frames: Annotated[
+        int | None, typer.Option("--frames", help="frames per scene (default 300; --family: 900)")
+    ] = None,
+    write: WriteOpt = None,
+    family: Annotated[
+        bool,
+        typer.Option("--family", help="consecutive keyframes of the held-out scene family, by assignment rule"),
+    ] = False,
 ) -> None:
-    """NPDA precision/recall on synthetic keyframes, the Table 2.2 grid, ablation and timing."""
+    """NPDA precision/recall on synthetic keyframes, the Table 2.2 grid, ablation and timing (--family: on the
+    held-out scene family's keyframes, with the swaps between same-class neighbours, per assignment rule)."""
+    if family:
+        from bench.association_family import run_association_family
+        from bench.objects_family import FAMILY_FRAMES, family_seeds
+
+        chosen = family_seeds(seeds)
+        run_association_family(console, chosen, frames or FAMILY_FRAMES, write)
+        return
     from bench.association import run_association_bench
 
-    run_association_bench(console, _seeds(seeds), frames, write)
+    run_association_bench(console, _seeds(seeds or "0,1,2"), frames or 300, write)
 
 
 @bench_app.command("objects")
