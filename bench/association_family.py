@@ -17,16 +17,16 @@ from pathlib import Path
 from rich.console import Console
 
 from bench.association import Counts, pct
-from bench.objects_family import keyframes
+from bench.objects_family import FAMILY_FRAMES, keyframes
 from bench.report import markdown_table, record, show_table
 from graph.geometry import inverse
 from perception.frame import Detection
 from perception.keyframing import KeyframeSettings
-from perception.npda import NPDAConfig, associate
+from perception.npda import NPDAConfig, RankBy, associate
 from sources.scene_family import HELD_OUT_SEEDS
 from sources.synthetic import parse_synthetic_spec
 
-RULES: dict[str, str] = {
+RULES: dict[RankBy, str] = {
     "overlap": "one-to-one by the moved box's overlap, A breaking ties (default)",
     "score": "one-to-one on A alone (Hungarian on -A)",
 }
@@ -68,7 +68,7 @@ def pair_outcome(
     )
 
 
-def scene_counts(seed: int, frames: int, rules: dict[str, NPDAConfig]) -> tuple[dict[str, FamilyCounts], int]:
+def scene_counts(seed: int, frames: int, rules: dict[RankBy, NPDAConfig]) -> tuple[dict[RankBy, FamilyCounts], int]:
     """Per rule, the outcomes over one family scene's consecutive keyframe pairs; and the number of pairs."""
     data = parse_synthetic_spec(f"synthetic:family?seed={seed}&frames={frames}&width=640&height=480")
     poses = data.ground_truth.poses
@@ -90,7 +90,7 @@ def scene_counts(seed: int, frames: int, rules: dict[str, NPDAConfig]) -> tuple[
 def run_association_family(console: Console, seeds: list[int], frames: int, write: Path | None) -> dict:
     """NPDA precision, recall and swaps per assignment rule over the family scenes ``seeds`` (module doc)."""
     start = time.perf_counter()
-    rules = {name: replace(NPDAConfig(), rank_by=name) for name in RULES}  # type: ignore[arg-type]
+    rules = {name: replace(NPDAConfig(), rank_by=name) for name in RULES}
     totals = {name: FamilyCounts() for name in RULES}
     pairs = 0
     for seed in seeds:
@@ -125,8 +125,10 @@ def run_association_family(console: Console, seeds: list[int], frames: int, writ
     show_table(console, "NPDA on the held-out scene family", header, rows)
     seconds = time.perf_counter() - start
     if write is not None:
-        command = "objslam bench association --family" + (
-            "" if seeds == list(HELD_OUT_SEEDS) else " --seeds " + ",".join(map(str, seeds))
+        command = (
+            "objslam bench association --family"
+            + ("" if seeds == list(HELD_OUT_SEEDS) else " --seeds " + ",".join(map(str, seeds)))
+            + (f" --frames {frames}" if frames != FAMILY_FRAMES else "")
         )
         notes = (
             f"Scenes `synthetic:family?seed=N&frames={frames}` (held-out seeds unless named), keyframes by the "

@@ -33,6 +33,10 @@ from perception.warp import MIN_Z_M, image_boxes, in_view, moved_box_points, nee
 log = logging.getLogger(__name__)
 
 
+RankBy = Literal["overlap", "score"]
+"""What NPDA's one-to-one assignment maximises (``NPDAConfig.rank_by``)."""
+
+
 @dataclass(frozen=True)
 class NPDAConfig:
     """NPDA choices; defaults from `objslam bench association` (docs/benchmarks.md, ablation table)."""
@@ -51,7 +55,7 @@ class NPDAConfig:
     """Only detections with the same class label can be associated."""
     one_to_one: bool = True
     """Hungarian assignment; False = per-column argmax of A as in Algorithm 1 (one previous may match many)."""
-    rank_by: Literal["overlap", "score"] = "overlap"
+    rank_by: RankBy = "overlap"
     """What the one-to-one assignment maximises over the candidates (A >= alpha): "overlap", the moved previous
     box's overlap with the current box (``overlap``), A breaking ties (module docstring); "score", A (the
     thesis's Hungarian on -A)."""
