@@ -118,9 +118,8 @@ def serve(settings: Settings, stop: threading.Event | None = None) -> int:
         from service.ros2_bridge import Ros2Bridge  # first answer: built before the node answers
 
         bridge = Ros2Bridge(node)
+        bridge.start(session)  # before the node answers: a client that waits for status then publishes loses no frame
     node.start()
-    if bridge is not None:
-        bridge.start(session)
     log.info("objslam serve: robot %s on %s, listening %s", settings.robot, node.prefix, settings.zenoh.listen)
     try:
         while not stop.wait(0.5):
