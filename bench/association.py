@@ -290,7 +290,8 @@ def _record_consecutive(console: Console, result: dict, k: int, command: str, wr
         f"Keyframes every {k} frames (~{2 * k} cm and ~{1.4 * k:.0f} degrees apart). True poses for warping "
         f"and the box gate. A true association = same instance id in both keyframes (false-positive "
         f"detections have id 0 and count as errors when associated). Defaults: alpha {cfg.alpha}, "
-        f"{cfg.max_samples} samples per box, class gate, one-to-one assignment, box gate IoU >= {cfg.min_iou}, "
+        f"{cfg.max_samples} samples per box, class gate, one-to-one assignment ranked by {cfg.rank_by}, box gate IoU "
+        f">= {cfg.min_iou}, "
         f"warping above {cfg.warp_tau} m / {cfg.warp_phi} rad."
     )
     record(
