@@ -74,7 +74,7 @@ def scene_counts(seed: int, frames: int, rules: dict[RankBy, NPDAConfig]) -> tup
     poses = data.ground_truth.poses
     out = {name: FamilyCounts() for name in rules}
     last = None
-    chosen = sorted(set(keyframes(poses, KeyframeSettings())))
+    chosen = keyframes(poses, KeyframeSettings())  # ascending, each once
     for i in chosen:
         frame = data.frame(i)
         now = (list(frame.detections or []), list(data.detection_instance_ids(i)), frame.depth_m(), poses[i])
