@@ -315,6 +315,14 @@ def bench_objects(
     family: Annotated[
         bool, typer.Option("--family", help="the randomized scene family (synthetic:family) instead of the room")
     ] = False,
+    detector_errors: Annotated[
+        bool,
+        typer.Option(
+            "--detector-errors",
+            help="with --family: the scenes again under each simulated detector error (wobbling boxes, confused "
+            "labels, part boxes, all)",
+        ),
+    ] = False,
     write: WriteOpt = None,
 ) -> None:
     """Objects mapped / present, false objects, ground-plane IoU and centroid error on synthetic scenes (--family:
@@ -322,6 +330,8 @@ def bench_objects(
     table is recorded only with --write)."""
     if frames is not None and frames < 2:
         raise UserError("--frames must be at least 2")
+    if detector_errors and not family:
+        raise UserError("--detector-errors needs --family")
     if family:
         from bench.objects_family import FAMILY_FRAMES, family_seeds, run_family_bench
 
@@ -331,6 +341,11 @@ def bench_objects(
             raise UserError(
                 f"--seeds must be integers separated by commas, 'dev' or 'held-out', got {seeds!r}"
             ) from None
+        if detector_errors:
+            from bench.objects_family_errors import run_error_sweep
+
+            run_error_sweep(console, chosen, frames or FAMILY_FRAMES, write)
+            return
         run_family_bench(console, chosen, frames or FAMILY_FRAMES, write)
         return
     from bench.objects import run_objects_bench

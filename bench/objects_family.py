@@ -170,7 +170,7 @@ def run_family_bench(
         )
         del data
     scenes = list(per_scene.values())
-    stats = _aggregate(scenes)
+    stats = aggregate(scenes)
     for name, key in (("median", "median"), ("worst decile", "worst")):
         rows.append(
             [name, "", "", "", "", *(_fmt(stats[m][key], m) for m in ("mapped", "false", "iou", "error")), "", "", ""]
@@ -223,7 +223,7 @@ def run_family_bench(
     return {"per_scene": per_scene, "aggregate": stats}
 
 
-def _aggregate(scenes: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
+def aggregate(scenes: list[dict[str, Any]]) -> dict[str, dict[str, float]]:
     """Median and worst decile over the scenes of mapped %, false %, median IoU and median centroid error."""
     keys = {"mapped": ("mapped_pct", True), "false": ("false_pct", False), "iou": ("iou_median", True)}
     keys["error"] = ("error_median_m", False)

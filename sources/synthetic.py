@@ -14,7 +14,9 @@ Everything is a pure function of the parameters and (seed, frame index).
 Spec: ``synthetic:room?seed=0&frames=300&width=640&height=480&fps=30`` plus optional knobs
 ``odom_drift`` (1.0 = ~2 mm / 0.05 deg per-frame noise and 0.02 deg/frame yaw bias), ``miss_rate`` (0.05),
 ``fp_rate`` (0.05 false positives per frame), ``depth_noise`` (1.0 = Kinect sigma), ``loop_gap``
-(100 frames between loop pairs) and ``revolutions`` (1.15 turns over the sequence).
+(100 frames between loop pairs), ``revolutions`` (1.15 turns over the sequence) and the detector's errors
+(``sources.detector_errors``): ``box_noise`` (0.025 of a box's size per side), ``confusion`` (0) and
+``part_boxes`` (0).
 
 ``synthetic:blank?seed=N&...`` (same knobs) is the room with plain painted walls and ceiling, whose camera looks
 up at them for a stretch of the sequence (``scene.BLANK_STRETCH``): no feature and one or two planes in view,
@@ -33,7 +35,7 @@ from urllib.parse import parse_qsl, urlsplit
 import numpy as np
 
 from perception.frame import CameraModel, Detection, Frame, Intrinsics
-from sources import family_render, scene, scene_family
+from sources import detector_errors, family_render, scene, scene_family
 from sources.base import Dataset, DatasetError, ObjectTruth, Trajectory, as_box
 from sources.raycast import (
     Render,
@@ -100,13 +102,18 @@ class SyntheticDataset(Dataset):
         depth_noise: float = 1.0,
         loop_gap: int = 100,
         revolutions: float = 1.15,
+        box_noise: float = 0.025,
+        confusion: float = 0.0,
+        part_boxes: float = 0.0,
     ) -> None:
         values = {"seed": seed, "frames": frames, "width": width, "height": height, "fps": fps}
         noise = {"odom_drift": odom_drift, "miss_rate": miss_rate, "fp_rate": fp_rate, "depth_noise": depth_noise}
+        noise |= {"box_noise": box_noise, "confusion": confusion, "part_boxes": part_boxes}
         _check(scene_name, {**values, **noise, "loop_gap": loop_gap, "revolutions": revolutions})
         self.name = f"synthetic/{scene_name}"
         self.seed, self.fps, self.loop_gap = int(seed), float(fps), int(loop_gap)
         self.miss_rate, self.fp_rate, self.depth_noise = float(miss_rate), float(fp_rate), float(depth_noise)
+        self.box_noise, self.confusion, self.part_boxes = float(box_noise), float(confusion), float(part_boxes)
         f = 525.0 * width / 640.0
         self.camera = CameraModel(Intrinsics(f, f, (width - 1) / 2.0, (height - 1) / 2.0), width, height, 1000.0)
         self.family: scene_family.FamilyLayout | None = None
@@ -210,12 +217,13 @@ class SyntheticDataset(Dataset):
     def _detections(self, index: int, r: Render) -> tuple[list[Detection], list[int]]:
         """Simulated detector output from the visible instance masks, sorted by score, with true ids."""
         rng = np.random.default_rng([self.seed, index, 2])
+        errors = np.random.default_rng([self.seed, index, 3])  # detector_errors' own stream
         w, h = self.camera.width, self.camera.height
         found: list[tuple[Detection, int]] = []
         for obj in self._objects:
             box_count = _visible_box(r, obj.id)
             miss = rng.random() < self.miss_rate
-            jitter = np.clip(rng.standard_normal(4), -2.5, 2.5) * 0.025
+            jitter = np.clip(rng.standard_normal(4), -2.5, 2.5) * self.box_noise
             noise = rng.normal(0.0, 0.04)
             if box_count is None or miss:
                 continue
@@ -224,9 +232,10 @@ class SyntheticDataset(Dataset):
                 continue
             bw, bh = x2 - x1, y2 - y1
             box = np.array([x1, y1, x2, y2]) + jitter * np.array([bw, bh, bw, bh])
-            box = np.clip(box, 0.0, [w, h, w, h])
+            box = np.clip(detector_errors.part_box(box, errors, self.part_boxes), 0.0, [w, h, w, h])
             score = float(np.clip(0.45 + 0.5 * (1.0 - np.exp(-count / (3.0 * self.min_pixels))) + noise, 0.4, 0.99))
-            found.append((Detection(obj.label, score, as_box(box)), obj.id))
+            label = detector_errors.confused(obj.label, errors, self.confusion)
+            found.append((Detection(label, score, as_box(box)), obj.id))
         for _ in range(rng.poisson(self.fp_rate)):
             found.append((self._false_positive(rng), 0))
         found.sort(key=lambda d: -d[0].score)
@@ -284,6 +293,9 @@ _LIMITS: dict[str, tuple[float, float]] = {
     "depth_noise": (0.0, 100.0),
     "loop_gap": (1, np.inf),
     "revolutions": (0.01, 10.0),
+    "box_noise": (0.0, 0.3),
+    "confusion": (0.0, 1.0),
+    "part_boxes": (0.0, 1.0),
 }
 
 
@@ -309,6 +321,9 @@ _PARAMS: dict[str, type] = {
     "depth_noise": float,
     "loop_gap": int,
     "revolutions": float,
+    "box_noise": float,
+    "confusion": float,
+    "part_boxes": float,
 }
 
 
