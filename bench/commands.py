@@ -389,4 +389,4 @@ def bench_detector(
     run_detector_bench(console, dataset, every, write)
 
 
-from bench import commands_live, commands_store  # noqa: E402, F401  (their commands register on bench_app)
+from bench import commands_detector, commands_live, commands_store  # noqa: E402, F401  (their commands register on bench_app)

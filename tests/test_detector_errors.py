@@ -8,7 +8,10 @@ import numpy as np
 import pytest
 from rich.console import Console
 
+from bench.box_stability import moved, source_detections, stability
 from bench.objects_family_errors import LEVELS, run_error_sweep, scene_result
+from perception.camera import Intrinsics
+from perception.frame import Detection
 from sources.base import DatasetError
 from sources.detector_errors import CONFUSED_WITH, PART_KEPT, confused, part_box
 from sources.synthetic import parse_synthetic_spec
@@ -89,3 +92,36 @@ def test_confused_labels_cost_objects_in_the_sweep(tmp_path) -> None:
     assert all(name in text for name in LEVELS) and set(summary) == set(LEVELS)
     first = summary["the family's detector"]["aggregate"]["mapped"]["median"]
     assert first == pytest.approx(100.0 * clean["found"] / clean["present"])
+
+
+def test_moved_box_follows_the_camera() -> None:
+    K = Intrinsics(500.0, 500.0, 320.0, 240.0)
+    depth = np.full((480, 640), 2.0)
+    box = (300.0, 200.0, 340.0, 260.0)
+    assert moved(box, depth, K, np.eye(4)) == pytest.approx(box)
+    T = np.eye(4)
+    T[0, 3] = -0.1  # the camera moved 0.1 m right: the scene moves left by fx * 0.1 / 2 = 25 px
+    assert moved(box, depth, K, T) == pytest.approx((275.0, 200.0, 315.0, 260.0))
+    T = np.eye(4)
+    T[2, 3] = -1.0  # 1 m closer: twice the size, its centre twice as far from the principal point
+    assert moved(box, depth, K, T) == pytest.approx((280.0, 160.0, 360.0, 280.0))
+
+
+def test_stability_counts_wobble_parts_and_switches() -> None:
+    whole = Detection("chair", 0.9, (100.0, 100.0, 200.0, 300.0))
+    wobble = Detection("chair", 0.9, (105.0, 100.0, 200.0, 310.0))
+    part = Detection("chair", 0.9, (100.0, 100.0, 200.0, 190.0))
+    couch = Detection("couch", 0.9, (101.0, 100.0, 200.0, 300.0))
+    s = stability([([wobble], [whole]), ([part], [wobble]), ([couch], [wobble])], 640, 480)
+    assert (s.frames, s.pairs) == (3, 2)
+    assert s.part_pairs == pytest.approx(0.5)
+    assert s.switches == pytest.approx(0.5)  # of the two detections over a previous box, the couch switched
+    assert s.p90 > 0.04
+
+
+def test_simulated_wobble_shows_in_the_box_stability() -> None:
+    tight, _, _ = source_detections(SPEC + "&box_noise=0", 0, 30)
+    loose, w, h = source_detections(SPEC + "&box_noise=0.08", 0, 30)
+    a, b = stability(tight, w, h), stability(loose, w, h)
+    assert a.pairs > 20 and b.pairs > 20
+    assert b.robust_sd > 2 * a.robust_sd and b.robust_sd > 0.06
