@@ -17,7 +17,7 @@ from pathlib import Path
 from rich.console import Console
 
 from bench.association import Counts, pct
-from bench.objects_family import FAMILY_FRAMES, keyframes
+from bench.objects_family import FAMILY_FRAMES, family_spec, keyframes
 from bench.report import markdown_table, record, show_table
 from graph.geometry import inverse
 from perception.frame import Detection
@@ -70,7 +70,7 @@ def pair_outcome(
 
 def scene_counts(seed: int, frames: int, rules: dict[RankBy, NPDAConfig]) -> tuple[dict[RankBy, FamilyCounts], int]:
     """Per rule, the outcomes over one family scene's consecutive keyframe pairs; and the number of pairs."""
-    data = parse_synthetic_spec(f"synthetic:family?seed={seed}&frames={frames}&width=640&height=480")
+    data = parse_synthetic_spec(family_spec(seed, frames))
     poses = data.ground_truth.poses
     out = {name: FamilyCounts() for name in rules}
     last = None

@@ -29,6 +29,7 @@ from graph.trajectory import nearest_timestamps
 from perception.camera import Intrinsics
 from perception.features import Box
 from perception.frame import Detection
+from perception.npda import box_iou
 from sources import open_dataset
 from sources.base import ground_truth_of
 
@@ -53,14 +54,6 @@ class Stability:
     p90: float  # 90th percentile of the absolute side changes
     part_pairs: float  # share of pairs whose area ratio is under PART_RATIO
     switches: float  # share of overlapping boxes (IoU >= SWITCH_IOU) whose label changed
-
-
-def iou(a: Box, b: Box) -> float:
-    w = min(a[2], b[2]) - max(a[0], b[0])
-    h = min(a[3], b[3]) - max(a[1], b[1])
-    inter = max(w, 0.0) * max(h, 0.0)
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return inter / union if union > 0 else 0.0
 
 
 def moved(box: Box, depth_m: np.ndarray, K: Intrinsics, T_cur_prev: np.ndarray) -> Box:
@@ -90,17 +83,20 @@ def stability(frames: Iterable[tuple[Sequence[Detection], Sequence[Detection]]],
     lo, hi = np.full(4, BORDER_PX), np.array([np.inf, np.inf, width - BORDER_PX, height - BORDER_PX])
     for dets, previous in frames:
         count += 1
-        for d in dets:
-            same = [(iou(d.box, p.box), p) for p in previous if p.label == d.label]
-            best = max(same, key=lambda c: c[0], default=(0.0, None))
-            other = max((iou(d.box, p.box) for p in previous if p.label != d.label), default=0.0)
-            if best[0] >= SWITCH_IOU or other >= SWITCH_IOU:
+        if not dets or not previous:
+            continue
+        overlap = box_iou([d.box for d in dets], [p.box for p in previous])
+        same = np.array([[d.label == p.label for p in previous] for d in dets])
+        for i, d in enumerate(dets):
+            mine = np.where(same[i], overlap[i], 0.0)
+            j = int(np.argmax(mine))
+            if mine[j] >= SWITCH_IOU or np.where(same[i], 0.0, overlap[i]).max() >= SWITCH_IOU:
                 overlapping += 1
-                switched += best[0] < SWITCH_IOU <= other
-            if best[1] is None or best[0] < PAIR_IOU:
+                switched += mine[j] < SWITCH_IOU
+            if mine[j] < PAIR_IOU:
                 continue
             pairs += 1
-            a, b = np.asarray(d.box, float), np.asarray(best[1].box, float)
+            a, b = np.asarray(d.box, float), np.asarray(previous[j].box, float)
             size = np.array([a[2] - a[0], a[3] - a[1]] * 2)
             keep = (a >= lo) & (a <= hi) & (b >= lo) & (b <= hi)  # sides the image border does not cut
             changes.extend(((a - b) / size)[keep].tolist())

@@ -32,11 +32,11 @@ from graph.trajectory import Trajectory
 from perception.frame import Frame
 from perception.keyframing import KeyframeSettings
 from service.config import Settings, ViewerSettings
-from service.protocol import encode_frame
+from service.protocol import decode_frame, encode_frame
 from service.replay import frame_publisher
 from service.run import run_dataset
 from sources import open_dataset
-from sources.base import DatasetView, Subset
+from sources.base import Dataset, DatasetView, Subset
 
 ROBOT = "live"
 PROFILE_HZ = 50
@@ -122,10 +122,14 @@ def offline_ate(dataset: str, frames: int, keyframes: KeyframeSettings | None = 
 def offline_summary(dataset: str, frames: int, keyframes: KeyframeSettings | None = None) -> dict[str, Any]:
     """The run summary of ``objslam run`` on the same frames without their odometry and detections (every
     frame), with the keyframe rule ``keyframes`` (default: the service's)."""
-    bare = first_frames(dataset, frames)
+    return offline_summary_of(first_frames(dataset, frames), keyframes)
+
+
+def offline_summary_of(data: Dataset, keyframes: KeyframeSettings | None = None) -> dict[str, Any]:
+    """The run summary of ``objslam run`` on every frame of ``data``, with the keyframe rule ``keyframes``."""
     settings = Settings(viewer=ViewerSettings(enabled=False), keyframes=keyframes or KeyframeSettings())
     with tempfile.TemporaryDirectory() as out:
-        return run_dataset(bare, Path(out), settings, progress=False)
+        return run_dataset(data, Path(out), settings, progress=False)
 
 
 def offline_ate_of(summary: dict[str, Any]) -> float | None:
@@ -139,6 +143,18 @@ class BareCamera(DatasetView):
 
     def frame(self, index: int) -> Frame:
         return dataclasses.replace(self.inner.frame(index), odometry=None, detections=None)
+
+
+class Published(DatasetView):
+    """A dataset's frames as ``serve`` receives them: each decoded from its published message (``payloads``, one
+    per frame: JPEG colour, PNG depth), so an offline run sees exactly the pixels the live service sees."""
+
+    def __init__(self, inner: Dataset, payloads: list[bytes]):
+        super().__init__(inner)
+        self.payloads = payloads
+
+    def frame(self, index: int) -> Frame:
+        return decode_frame(self.payloads[index])
 
 
 def first_frames(dataset: str, frames: int) -> BareCamera:

@@ -20,7 +20,16 @@ from typing import Any
 import numpy as np
 from rich.console import Console
 
-from bench.live import _cm, _trajectory, first_frames, offline_ate_of, offline_summary, serve_live
+from bench.live import (
+    Published,
+    _cm,
+    _trajectory,
+    first_frames,
+    offline_ate_of,
+    offline_summary,
+    offline_summary_of,
+    serve_live,
+)
 from bench.report import markdown_table, record, show_table
 from evaluation.trajectory_metrics import evaluate
 from perception.keyframing import KeyframeSettings
@@ -52,12 +61,15 @@ def env_of(rule: KeyframeSettings) -> dict[str, str]:
 def measure_spread(
     dataset: str, frames: int, rate_hz: float, steps: tuple[float, ...] = (STEP,)
 ) -> list[dict[str, Any]]:
-    """Per keyframe rule: the offline ATE, and the live run's ATE at the stream's end and settled (m)."""
+    """Per keyframe rule: the offline ATE on the dataset's frames and on the frames as published (decoded from
+    the live run's messages), and the live run's ATE at the stream's end and settled (m)."""
     bare = first_frames(dataset, frames)
     payloads = [encode_frame(bare.frame(i)) for i in range(len(bare))]
+    published = Published(bare, payloads)
     out = []
     for name, rule in rules(*steps).items():
         summary = offline_summary(dataset, len(payloads), rule)
+        same_pixels = offline_ate_of(offline_summary_of(published, rule))
         env = {"OBJSLAM_INGEST__LIVE": "true", **env_of(rule)}
         with tempfile.TemporaryDirectory() as state:
             status, reply, settled, _ = serve_live(payloads, rate_hz, {**env, "OBJSLAM_STATE_DIR": state}, settle=True)
@@ -67,6 +79,7 @@ def measure_spread(
             {
                 "rule": name,
                 "offline": offline_ate_of(summary),
+                "offline_published": same_pixels,
                 "keyframes": (summary.get("keyframes"), status.get("keyframes")),
                 "loops": (summary.get("loop_closures"), status.get("loop_closures", {}).get("accepted")),
                 "live_end": end.ate_rmse_m if end is not None else None,
@@ -87,8 +100,10 @@ def _median(values: list[float | None]) -> float | None:
 
 def spread_rows(dataset: str, results: list[dict[str, Any]]) -> list[list[str]]:
     """A row per rule, then the medians over the rules and the median of the rules' live - offline differences
-    (paired: each live run against the offline run of its own rule)."""
+    (paired: each live run against the offline run of its own rule), against the offline run on the dataset's
+    frames and against the one on the frames as published."""
     diffs = [_minus(r["live_settled"], r["offline"]) for r in results]
+    same = [_minus(r["live_settled"], r.get("offline_published")) for r in results]
     rows = [
         [
             f"`{dataset}`",
@@ -99,36 +114,47 @@ def spread_rows(dataset: str, results: list[dict[str, Any]]) -> list[list[str]]:
             _cm(d),
             _pair(r.get("keyframes")),
             _pair(r.get("loops")),
+            _cm(r.get("offline_published")),
+            _cm(e),
         ]
-        for r, d in zip(results, diffs, strict=True)
+        for r, d, e in zip(results, diffs, same, strict=True)
     ]
-    med = {k: _median([r[k] for r in results]) for k in ("offline", "live_end", "live_settled")}
+    med = {
+        k: _median([r.get(k) for r in results]) for k in ("offline", "live_end", "live_settled", "offline_published")
+    }
     lower = sum(d is not None and d <= 0 for d in diffs)
-    diff = _minus(med["live_settled"], med["offline"])
+    lower_same = sum(e is not None and e <= 0 for e in same)
     rows.append(
         [
             f"`{dataset}`",
-            f"**median of {len(results)}** (live settled <= offline in {lower})",
+            f"**median of {len(results)}** (live settled <= offline in {lower}; <= offline on the published frames "
+            f"in {lower_same})",
             f"**{_cm(med['offline'])}**",
             _cm(med["live_end"]),
             f"**{_cm(med['live_settled'])}**",
-            _cm(diff),
+            _cm(_minus(med["live_settled"], med["offline"])),
             "",
             "",
+            f"**{_cm(med['offline_published'])}**",
+            _cm(_minus(med["live_settled"], med["offline_published"])),
         ]
     )
-    known = [d for d in diffs if d is not None]
-    lo, hi = median_interval(known) if known else (None, None)
+    intervals = [
+        median_interval(k) if k else (None, None) for k in ([d for d in v if d is not None] for v in (diffs, same))
+    ]
     rows.append(
         [
             f"`{dataset}`",
-            f"**median of the {len(known)} differences** (95 % bootstrap interval {_cm(lo)} to {_cm(hi)})",
+            f"**median of the {len(results)} differences** (95 % bootstrap interval {_cm(intervals[0][0])} to "
+            f"{_cm(intervals[0][1])}; on the published frames {_cm(intervals[1][0])} to {_cm(intervals[1][1])})",
             "",
             "",
             "",
             f"**{_cm(_median(diffs))}**",
             "",
             "",
+            "",
+            f"**{_cm(_median(same))}**",
         ]
     )
     return rows
@@ -155,6 +181,8 @@ HEADER = [
     "settled - offline (cm)",
     "keyframes offline / live",
     "loop closures offline / live",
+    "offline ATE on the published frames (cm)",
+    "settled - offline on the published frames (cm)",
 ]
 
 
@@ -173,7 +201,9 @@ def run_spread_bench(
         f"{' / '.join(f'{s:.0%}' for s in steps)} lower or higher (`keyframes.translation_m`, "
         "`keyframes.rotation_deg`). Live ATE settled: once the pause after the stream has moved the graph to its "
         "batch optimum (`ingest.polish_after_s`). The last row: the median over the rules of each live run's ATE "
-        "less the offline run's of its own rule. Offline ATE over the rules: "
+        "less the offline run's of its own rule. The last two columns: the offline run again on the frames exactly as "
+        "the live service decodes them (JPEG colour, PNG depth: `bench.live.Published`), so that the live run and it "
+        "see the same pixels. Offline ATE over the rules: "
         f"{min(offline) * 100:.2f}-{max(offline) * 100:.2f} cm."
         if offline
         else ""

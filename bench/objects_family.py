@@ -43,6 +43,13 @@ def family_seeds(text: str | None) -> list[int]:
     return [int(s) for s in text.replace(",", " ").split()]
 
 
+def family_spec(seed: int, frames: int, size: tuple[int, int] = (640, 480), knobs: str = "") -> str:
+    """The dataset spec of family scene ``seed``, with extra spec ``knobs`` (``key=value&...``) when given."""
+    return f"synthetic:family?seed={seed}&frames={frames}&width={size[0]}&height={size[1]}" + (
+        f"&{knobs}" if knobs else ""
+    )
+
+
 def keyframes(poses: np.ndarray, settings: KeyframeSettings) -> list[int]:
     """Frames the service would make keyframes of (moved / turned enough or too many frames since the last)."""
     out = [0]
@@ -142,8 +149,7 @@ def run_family_bench(
     per_scene: dict[int, dict[str, Any]] = {}
     rows: list[list[object]] = []
     for seed in seeds:
-        spec = f"synthetic:family?seed={seed}&frames={frames}&width={size[0]}&height={size[1]}"
-        data = parse_synthetic_spec(spec)
+        data = parse_synthetic_spec(family_spec(seed, frames, size))
         assert data.family is not None
         lay = data.family
         console.print(f"family seed {seed}: {lay.path.kind} path, {len(lay.objects)} objects, {frames} frames")

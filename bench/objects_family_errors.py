@@ -1,11 +1,11 @@
 """``objslam bench objects --family --detector-errors``: the held-out family under a worse detector.
 
 The family's simulated detector misses 5 % of the objects in view, adds 0.05 false boxes per frame and puts each
-box side within a few percent of the object's edge. A trained detector on real frames does worse, in ways the
-object path was never tuned on (``sources.detector_errors``): boxes that wobble, labels it mixes up, boxes of a
-part of the object. Each level below maps every held-out scene with one kind of error (or all of them) and
-reports the same median / worst-decile figures as ``bench objects --family``, so how far each one moves them
-is read off one table.
+box side within a few percent of the object's edge. A trained detector on real frames errs in ways the object
+path was never tuned on (``sources.detector_errors``; ``bench box-stability`` measures them on the real
+sequences): boxes that wobble, labels it mixes up, boxes of a part of the object. Each level below maps every
+held-out scene with one kind of error (or all of them) and reports the same median / worst-decile figures as
+``bench objects --family``, so how far each one moves them is read off one table.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 from rich.console import Console
 
 from bench.association import pct
-from bench.objects_family import aggregate, map_scene, score_scene, worst_decile
+from bench.objects_family import aggregate, family_spec, map_scene, score_scene, worst_decile
 from bench.report import markdown_table, record, show_table
 from perception.clustering import ClusterConfig
 from sources.scene_family import HELD_OUT_SEEDS
@@ -38,8 +38,7 @@ LEVELS: dict[str, str] = {
 
 def scene_result(seed: int, frames: int, extra: str, min_frames: int = 25) -> dict[str, Any]:
     """One family scene mapped and scored with the detector knobs ``extra`` (a spec query, may be empty)."""
-    spec = f"synthetic:family?seed={seed}&frames={frames}&width=640&height=480" + (f"&{extra}" if extra else "")
-    data = parse_synthetic_spec(spec)
+    data = parse_synthetic_spec(family_spec(seed, frames, knobs=extra))
     objects, present, facts = map_scene(data, min_frames)
     return score_scene(data, objects, present, ClusterConfig().axis_scale) | facts
 

@@ -1,7 +1,9 @@
 """The simulated detector's errors beyond misses and false positives: loose boxes, confused labels, part boxes.
 
-A trained detector on real frames is worse than the synthetic scenes' default detector in three ways that
-matter to the object path, and each has a knob of the synthetic spec (``synthetic:family?...&box_noise=..``):
+A trained detector on real frames differs from the synthetic scenes' default detector in three ways that matter
+to the object path (``objslam bench box-stability`` measures them: on 7-Scenes CenterNet's boxes wobble less from
+frame to frame than the default's, but it switches labels and boxes parts of objects, which the default never
+does). Each has a knob of the synthetic spec (``synthetic:family?...&box_noise=..``):
 
 - ``box_noise``: each box side is off by a normal share of the box's size with this standard deviation
   (clipped at 2.5 of them); 0.025 by default, 0.06-0.1 for a detector whose boxes wobble from frame to frame;

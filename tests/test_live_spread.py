@@ -41,8 +41,9 @@ def test_the_summary_row_takes_the_medians_and_counts_the_rules_live_did_no_wors
             "live_settled": 0.041,
             "keyframes": (130, 127),
             "loops": (9, None),
+            "offline_published": 0.042,
         },
-        {"rule": "b", "offline": 0.038, "live_end": 0.040, "live_settled": 0.036},
+        {"rule": "b", "offline": 0.038, "live_end": 0.040, "live_settled": 0.036, "offline_published": 0.033},
         {"rule": "c", "offline": 0.042, "live_end": 0.041, "live_settled": 0.039},
     ]
     rows = spread_rows("d", results)
@@ -53,7 +54,11 @@ def test_the_summary_row_takes_the_medians_and_counts_the_rules_live_did_no_wors
     assert summary[5] == "-0.10"
     assert rows[-1][5] == "**-0.20**"  # the paired differences +0.10, -0.20, -0.30
     assert "interval -0.30 to 0.10" in rows[-1][1]
-    assert rows[0][6:] == ["130 / 127", "9 / -"] and rows[1][6:] == ["- / -", "- / -"]
+    assert rows[0][6:8] == ["130 / 127", "9 / -"] and rows[1][6:8] == ["- / -", "- / -"]
+    # against the offline run on the published frames (none for rule c): -0.10 and +0.30
+    assert rows[0][8:] == ["4.20", "-0.10"] and rows[2][8:] == ["-", "-"]
+    assert "on the published frames in 1" in summary[1] and summary[8] == "**3.75**"
+    assert rows[-1][9] == "**0.10**" and "on the published frames -0.10 to 0.30" in rows[-1][1]
 
 
 def test_the_bootstrap_interval_of_the_median_holds_it_and_narrows_with_more_values() -> None:
