@@ -91,7 +91,8 @@ def _encode_color(rgb: np.ndarray, encoding: str) -> bytes:
     if encoding == "rgb8":
         return np.ascontiguousarray(rgb, dtype=np.uint8).tobytes()
     ext = {"jpeg": ".jpg", "png": ".png"}[encoding]
-    ok, buf = cv2.imencode(ext, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])
+    params = [cv2.IMWRITE_JPEG_QUALITY, 95] if encoding == "jpeg" else []
+    ok, buf = cv2.imencode(ext, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), params)
     if not ok:
         raise ValueError(f"could not encode colour as {encoding}")
     return buf.tobytes()
