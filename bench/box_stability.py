@@ -179,13 +179,15 @@ def run_box_stability(console: Console, specs: list[str], start: int, frames: in
         command += f" --start {start} --frames {frames}"
         notes = (
             f"Frames {start}-{start + frames - 1} of each source; real sequences through the service's detector "
-            f"(CenterNet, default thresholds), synthetic ones with their simulated detections. A detection is paired "
+            f"(CenterNet, default thresholds), synthetic ones with their simulated detections. The previous frame's "
+            f"boxes are moved into the current image by the true relative pose (each box's centre at its middle's "
+            f"median depth, its size scaled by the depth's change), so the camera's motion is not counted; frames "
+            f"without a true pose are skipped. A detection is paired "
             f"with the previous frame's box of its label that overlaps it most (IoU >= {PAIR_IOU}); side change = "
             f"the change of a box side not within {BORDER_PX:g} px of the image border, as a share of the box's "
             f"width (left, right) or height (top, bottom). Part box beside a whole one: pairs whose smaller box has "
             f"under {PART_RATIO:g} of the larger's area. Label switched: detections over a previous box (IoU >= "
-            f"{SWITCH_IOU}) of another label and none of their own. Camera motion between frames is in the figures "
-            f"for every source."
+            f"{SWITCH_IOU}) of another label and none of their own."
         )
         record(
             "box-stability", "Detector boxes from frame to frame", command, markdown_table(header, rows), notes, write

@@ -27,6 +27,7 @@ def bench_box_stability(
     """How much detector boxes move from frame to frame: the real detector on real frames against the simulated
     one, at its defaults and with the detector errors of bench objects --family --detector-errors."""
     from bench.box_stability import run_box_stability
+    from bench.objects_family_errors import LEVELS
 
     if frames < 2 or start < 0:
         raise UserError("--frames must be at least 2 and --start at least 0")
@@ -34,6 +35,6 @@ def bench_box_stability(
         "../shared/data/7scenes_redkitchen_1000",
         "../shared/data/tum_fr3_teddy_200",
         "synthetic:family?seed=1001&frames=300",
-        "synthetic:family?seed=1001&frames=300&miss_rate=0.12&box_noise=0.045&confusion=0.05&part_boxes=0.075",
+        "synthetic:family?seed=1001&frames=300&" + LEVELS["all of these at half, 12 % missed"],
     ]
     run_box_stability(console, specs, start, frames, write)

@@ -36,9 +36,9 @@ LEVELS: dict[str, str] = {
 """Named detector error levels: extra knobs of the family spec (``sources.detector_errors``)."""
 
 
-def scene_result(seed: int, frames: int, extra: str, min_frames: int = 25) -> dict[str, Any]:
-    """One family scene mapped and scored with the detector knobs ``extra`` (a spec query, may be empty)."""
-    data = parse_synthetic_spec(family_spec(seed, frames, knobs=extra))
+def scene_result(seed: int, frames: int, knobs: str, min_frames: int = 25) -> dict[str, Any]:
+    """One family scene mapped and scored with the detector ``knobs`` (a spec query, may be empty)."""
+    data = parse_synthetic_spec(family_spec(seed, frames, knobs=knobs))
     objects, present, facts = map_scene(data, min_frames)
     return score_scene(data, objects, present, ClusterConfig().axis_scale) | facts
 
