@@ -139,13 +139,12 @@ def spread_rows(dataset: str, results: list[dict[str, Any]]) -> list[list[str]]:
             _cm(_minus(med["live_settled"], med["offline_published"])),
         ]
     )
-    intervals = [
-        median_interval(k) if k else (None, None) for k in ([d for d in v if d is not None] for v in (diffs, same))
-    ]
+    known = [[d for d in v if d is not None] for v in (diffs, same)]
+    intervals = [median_interval(k) if k else (None, None) for k in known]
     rows.append(
         [
             f"`{dataset}`",
-            f"**median of the {len(results)} differences** (95 % bootstrap interval {_cm(intervals[0][0])} to "
+            f"**median of the {len(known[0])} differences** (95 % bootstrap interval {_cm(intervals[0][0])} to "
             f"{_cm(intervals[0][1])}; on the published frames {_cm(intervals[1][0])} to {_cm(intervals[1][1])})",
             "",
             "",
